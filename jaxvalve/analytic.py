@@ -1,0 +1,150 @@
+"""Reference solutions of classical membrane problems, for validation (NumPy/SciPy).
+
+1. Clamped circular membrane under uniform pressure (Foppl-Hencky problem).
+   Small-strain, moderate-rotation (Foppl / von Karman) membrane theory, stress-free flat
+   disk of radius a, thickness h, Young's modulus E, Poisson ratio nu, edge fixed (u = w = 0
+   at r = a), uniform transverse pressure q.  The centre deflection and centre stress are
+
+       w0       = K_w(nu)     * a * (q a / (E h))^(1/3)
+       sigma_0  = K_sigma(nu) * (E q^2 a^2 / h^2)^(1/3)
+
+   Hencky (1915) solved the problem by a power series; his numbers contained an arithmetic
+   error later corrected by Chien (1948) and Alekseev (1953), see also Fichter (1997, NASA
+   TP-3658).  Timoshenko & Woinowsky-Krieger (1959, sec. 104) still quote Hencky's original
+   K_w = 0.662, K_sigma = 0.423 for nu = 0.3; the corrected values are K_w(0.3) = 0.6534,
+   K_sigma(0.3) = 0.4311 (radial stress coefficient b0 = 4 K_sigma = 1.724).  The curve fit
+   K_w(nu) ~ 0.7179 - 0.1706 nu - 0.1495 nu^2 of Komaragiri, Begley & Simmonds (2005, J.
+   Appl. Mech. 72:203) agrees with `hencky_constants` to 4e-4 over 0.25 <= nu <= 0.5.
+
+   Derivation used here.  With phi = r sigma_r, sigma_theta = d(r sigma_r)/dr (radial
+   equilibrium), w' = -q r / (2 h sigma_r) (vertical equilibrium) and compatibility
+   eps_r = d(r eps_theta)/dr + w'^2/2, the radial stress obeys, in s = sigma_r / sigma_hat,
+   rho = r / a, sigma_hat = (E q^2 a^2 / h^2)^(1/3):
+
+       s'' + 3 s' / rho = -1 / (8 s^2),   s'(0) = 0,   s'(1) + (1 - nu) s(1) = 0
+
+   (the last condition is u(a) = 0, i.e. sigma_theta = nu sigma_r at the edge), and
+
+       w(rho) / (a (q a / (E h))^(1/3)) = 1/2 int_rho^1 t / s(t) dt.
+
+   The ODE does not depend on nu; nu enters only through the edge condition.  It is solved
+   by shooting on s(0) (a regular series start at rho -> 0) with `solve_ivp` + `brentq`.
+
+2. Inflated spherical membrane (exact finite-strain solution; Green & Adkins 1960,
+   Treloar 1975).  A stress-free sphere of radius R, wall thickness H, inflated by internal
+   pressure P to radius lambda R (equibiaxial stretch lambda):
+
+       neo-Hookean:  P = 2 mu H / R (1/lambda - 1/lambda^7)
+       Gent:         P = 2 mu H Jm / R (1/lambda - 1/lambda^7) / (Jm - 2 lambda^2 - lambda^-4 + 3)
+
+   The neo-Hookean curve has a limit point (maximum pressure) at lambda = 7^(1/6) ~ 1.383;
+   `inflated_sphere_stretch` returns the stretch on the stable branch below it.
+
+Units: any consistent set (mm, N, MPa in jaxvalve).
+"""
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+from scipy.integrate import quad, solve_ivp
+from scipy.optimize import brentq
+
+__all__ = [
+    "hencky_constants", "hencky_center_deflection", "hencky_profile",
+    "sphere_pressure_neo_hookean", "sphere_pressure_gent", "inflated_sphere_stretch",
+    "NEO_HOOKEAN_LIMIT_STRETCH",
+]
+
+_RHO0 = 1e-6  # start of the shooting integration (regular series below it)
+
+
+def _shoot(s0):
+    """Integrate s'' + 3 s'/rho = -1/(8 s^2) from rho ~ 0 with s(0) = s0, s'(0) = 0."""
+    s2 = -1.0 / (64.0 * s0**2)  # s = s0 + s2 rho^2 + O(rho^4)
+    y0 = [s0 + s2 * _RHO0**2, 2.0 * s2 * _RHO0]
+
+    def rhs(r, y):
+        return [y[1], -1.0 / (8.0 * y[0] ** 2) - 3.0 * y[1] / r]
+
+    return solve_ivp(rhs, (_RHO0, 1.0), y0, method="DOP853", rtol=1e-13, atol=1e-15,
+                     dense_output=True)
+
+
+@functools.lru_cache(maxsize=64)
+def _hencky_solution(nu: float):
+    if not -1.0 < nu <= 0.5:
+        raise ValueError(f"nu must lie in (-1, 0.5]; got {nu}")
+
+    def edge(s0):
+        s, sp = _shoot(s0).y[:, -1]
+        return sp + (1.0 - nu) * s
+
+    s0 = brentq(edge, 0.2, 1.5, xtol=1e-15, rtol=4 * np.finfo(float).eps)
+    return s0, _shoot(s0)
+
+
+def hencky_profile(rho, nu: float):
+    """Dimensionless deflection w(rho) / (a (q a/(E h))^(1/3)) at rho = r/a in [0, 1]."""
+    s0, sol = _hencky_solution(float(nu))
+    rho = np.atleast_1d(np.asarray(rho, float))
+    f = lambda t: t / sol.sol(t)[0]
+    out = []
+    for r in rho:
+        lo = max(r, _RHO0)
+        v = quad(f, lo, 1.0, epsabs=1e-14, epsrel=1e-13, limit=200)[0]
+        if r < _RHO0:  # int_r^RHO0 t/s0 dt
+            v += (_RHO0**2 - r**2) / (2.0 * s0)
+        out.append(0.5 * v)
+    return np.asarray(out)
+
+
+def hencky_constants(nu: float):
+    """(K_w, K_sigma): w0 = K_w a (q a/(E h))^(1/3), sigma_0 = K_sigma (E q^2 a^2/h^2)^(1/3)."""
+    s0, _ = _hencky_solution(float(nu))
+    return float(hencky_profile(0.0, nu)[0]), float(s0)
+
+
+def hencky_center_deflection(q, a, E, h, nu):
+    """Centre deflection (length) of the clamped Foppl-Hencky membrane."""
+    K, _ = hencky_constants(nu)
+    return K * a * (q * a / (E * h)) ** (1.0 / 3.0)
+
+
+# ------------------------------------------------------------------ inflated sphere
+NEO_HOOKEAN_LIMIT_STRETCH = 7.0 ** (1.0 / 6.0)
+
+
+def sphere_pressure_neo_hookean(lam, mu, H, R):
+    """Internal pressure that inflates a neo-Hookean sphere (R, H) to stretch lam."""
+    lam = np.asarray(lam, float)
+    return 2.0 * mu * H / R * (1.0 / lam - lam**-7)
+
+
+def sphere_pressure_gent(lam, mu, Jm, H, R):
+    """Internal pressure that inflates a Gent sphere (R, H, Jm) to stretch lam."""
+    lam = np.asarray(lam, float)
+    return (2.0 * mu * H * Jm / R * (1.0 / lam - lam**-7)
+            / (Jm - 2.0 * lam**2 - lam**-4 + 3.0))
+
+
+def inflated_sphere_stretch(P, mu, H, R, Jm=None):
+    """Stretch lambda of an inflated sphere under pressure P: neo-Hookean (Jm None) or Gent.
+
+    Returns the root on the first (stable) rising branch: for neo-Hookean lambda in
+    (1, 7^(1/6)); for Gent lambda in (1, lambda_max) below the first pressure maximum (if
+    any) or the stretch limit 2 lam^2 + lam^-4 - 3 = Jm."""
+    if Jm is None:
+        f = lambda l: sphere_pressure_neo_hookean(l, mu, H, R) - P
+        hi = NEO_HOOKEAN_LIMIT_STRETCH
+    else:
+        f = lambda l: sphere_pressure_gent(l, mu, Jm, H, R) - P
+        # stretch limit: 2 l^2 + l^-4 - 3 = Jm
+        lim = brentq(lambda l: 2 * l**2 + l**-4 - 3 - Jm, 1.0 + 1e-12, 1e3)
+        ls = np.linspace(1.0 + 1e-9, lim * (1 - 1e-12), 20001)
+        p = sphere_pressure_gent(ls, mu, Jm, H, R)
+        drop = np.nonzero(np.diff(p) < 0)[0]
+        hi = ls[drop[0]] if drop.size else ls[-1]
+    if not 0 < P < f(hi) + P:
+        raise ValueError(f"pressure {P} is outside (0, {f(hi) + P:.6g}], the stable branch")
+    return brentq(f, 1.0 + 1e-14, hi, xtol=1e-15, rtol=4 * np.finfo(float).eps)

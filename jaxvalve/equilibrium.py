@@ -1,0 +1,184 @@
+"""The public equilibrium solve, with its implicit (adjoint) derivative.
+
+``solve(problem, params, x0)`` finds x with residual(x) = 0 on the free nodes, starting
+from x0 (N, 3) mm; fixed nodes stay at x0.  Reverse-mode gradients of anything computed
+from the returned x, with respect to ``params`` (material, H, P, ref, contact) and to the
+fixed positions in x0, come from the implicit function theorem: one adjoint solve
+K^T mu = g with the transposed stiffness, never from unrolling the iterations.
+"""
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import assembly
+from .errors import ConvergenceError, ParameterError
+from .problem import Params, Problem, validate_params
+from .solvers import RESULTS, EquilibriumSystem, FixedPoint, NewtonKrylov, Solution, Stats, iterate
+from .solvers.base import relative_residual
+
+
+def _contact_of(params):
+    return params.contact
+
+
+def make_system(problem: Problem, params: Params) -> EquilibriumSystem:
+    """The functions a solver needs, with ``args = dict(params, ref, nbrs, delta, f0)``."""
+    contact = _contact_of(params)
+
+    def force(y, a):
+        return assembly.residual(y, problem, a["params"], a["ref"], a["nbrs"], a["delta"])
+
+    def scale(y, a):
+        p = a["params"]
+        return jnp.where(p.pressure != 0, assembly.pressure_scale(y, problem, p), a["f0"])
+
+    def admissible(y, a):
+        return assembly.stretch_admissible(y, problem, a["params"], a["ref"])
+
+    def bound(y, a):
+        return assembly.stiffness_bound(y, problem, a["params"], a["ref"])
+
+    def block_diag(y, a):
+        return assembly.block_diagonal(y, problem, a["params"], a["ref"])
+
+    def update(y, a):
+        if contact is None:
+            return a
+        return dict(a, nbrs=contact.update_pairs(a["nbrs"], y, problem))
+
+    def overflow(a):
+        if contact is None:
+            return jnp.asarray(False)
+        return a["nbrs"].overflow
+
+    def laplacian(v, a):
+        return assembly.laplacian_apply(v, problem.triangles, a["ref"].cot)
+
+    return EquilibriumSystem(force, scale, admissible, bound, block_diag, update, overflow,
+                             laplacian, problem.free)
+
+
+def _make_args(problem, params, x0, nbrs, solver):
+    ref = assembly.prepare(problem, params)
+    a = dict(params=params, ref=ref, nbrs=nbrs, delta=jnp.asarray(0.0, x0.dtype),
+             f0=jnp.asarray(1.0, x0.dtype))
+    system = make_system(problem, params)
+    a = system.update(x0, a)
+    if params.contact is not None and hasattr(params.contact, "force"):
+        # the paper's law needs the fixed-point step delta (tentative positions)
+        d = (solver.delta if isinstance(solver, FixedPoint) and solver.delta is not None
+             else 1.0 / jnp.max(jnp.where(problem.free, system.bound(x0, a), 0.0)))
+        a = dict(a, delta=jnp.asarray(d, x0.dtype))
+    f0 = jnp.linalg.norm(system.force(x0, a))
+    a = dict(a, f0=jnp.where(f0 > 0, f0, 1.0))
+    return system, a
+
+
+def _run(solver, problem, params, x0, nbrs):
+    system, args = _make_args(problem, params, x0, nbrs, solver)
+    steps = evals = hvps = jnp.asarray(0)
+    y = x0
+    for warm in getattr(solver, "warm_start", None) or ():
+        y, args, st, _, n = iterate(warm, system, y, args)
+        s = warm.stats(st)
+        steps, evals, hvps = steps + n, evals + s["force_evals"], hvps + s["hvps"]
+    y, args, st, result, n = iterate(solver, system, y, args)
+    s = solver.stats(st)
+    res = relative_residual(system, y, args)
+    stats = Stats(steps=steps + n, force_evals=evals + s["force_evals"], hvps=hvps + s["hvps"],
+                  residual=res)
+    return y, result, stats, args
+
+
+def _adjoint_solve(problem, params, x, nbrs, delta, g, tol=1e-12, maxiter=2000):
+    """mu solving K^T mu = g on free dofs (K = -dR/dx); returns (mu, vjp_fn of R)."""
+    free = problem.free[:, None]
+
+    def R(xx, pp):
+        ref = assembly.prepare(problem, pp)
+        return assembly.residual(xx, problem, pp, ref, nbrs, delta)
+
+    _, vjp = jax.vjp(R, x, params)
+    ref = assembly.prepare(problem, params)
+    from .solvers.newton import _apply_blocks, _precond
+    V, w = _precond(assembly.block_diagonal(x, problem, params, ref), problem.free)
+    KT = lambda v: -vjp(v * free)[0] * free
+    M = lambda r: _apply_blocks(V, 1.0 / w, r) * free
+    gf = g * free
+    mu, _ = jax.scipy.sparse.linalg.gmres(KT, gf, tol=0.0, atol=tol * jnp.linalg.norm(gf),
+                                          restart=60, maxiter=maxiter // 60 + 1, M=M,
+                                          solve_method="batched")
+    return mu, vjp
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+def _equilibrium(solver, problem, params, x0, nbrs):
+    y, result, stats, args = _run(solver, problem, params, x0, nbrs)
+    return y, result, stats, args["nbrs"], args["delta"]
+
+
+def _eq_fwd(solver, problem, params, x0, nbrs):
+    out = _equilibrium(solver, problem, params, x0, nbrs)
+    y, _, _, nb, delta = out
+    return out, (problem, params, y, nb, delta)
+
+
+def _eq_bwd(solver, res, cts):
+    problem, params, y, nb, delta = res
+    g = cts[0]
+    mu, vjp = _adjoint_solve(problem, params, y, nb, delta, g)
+    gx, gp = vjp(mu)
+    fixed = problem.fixed[:, None]
+    # x*[fixed] = x0[fixed] directly, and R depends on x0[fixed] through x*
+    gx0 = (g + gx) * fixed
+    zeros_like = lambda t: jax.tree_util.tree_map(
+        lambda a: None if not jnp.issubdtype(jnp.asarray(a).dtype, jnp.inexact) else jnp.zeros_like(a), t)
+    return (zeros_like(problem), gp, gx0, zeros_like(nb))
+
+
+_equilibrium.defvjp(_eq_fwd, _eq_bwd)
+
+
+@functools.partial(jax.jit, static_argnums=(0,))
+def _solve_jit(solver, problem, params, x0, nbrs):
+    return _equilibrium(solver, problem, params, x0, nbrs)
+
+
+def _raise_host(code, residual, steps):
+    code = int(code)
+    if code != RESULTS.successful:
+        r = RESULTS(code)
+        raise ConvergenceError(f"equilibrium solve failed: {r.message} ({r.name}); relative "
+                               f"residual {float(residual):.3e} after {int(steps)} steps")
+
+
+def solve(problem: Problem, params: Params, x0, solver=None, *, throw: bool = True,
+          nbrs=None) -> Solution:
+    """Equilibrium of ``problem`` under ``params`` from the start x0 (N, 3) mm.
+
+    solver: `NewtonKrylov()` (default), `FIRE()` or `FixedPoint()` (Algorithm 2.1).
+    throw: raise `ConvergenceError` (with the residual) unless the solve converged; with
+    throw=False the caller must inspect ``solution.result``.  Differentiable in reverse
+    mode with respect to params and the fixed positions in x0 (implicit adjoint).
+    """
+    solver = NewtonKrylov() if solver is None else solver
+    x0 = jnp.asarray(x0)
+    if x0.shape != (problem.n_nodes, 3):
+        raise ParameterError(f"x0 must have shape ({problem.n_nodes}, 3); got {x0.shape}")
+    if not isinstance(x0, jax.core.Tracer) and not np.all(np.isfinite(np.asarray(x0))):
+        raise ParameterError("x0 holds a non-finite coordinate; every coordinate must be finite")
+    validate_params(params)
+    if params.contact is not None and nbrs is None:
+        nbrs = params.contact.init_pairs(x0, problem)
+    y, result, stats, nb, _ = _solve_jit(solver, problem, params, x0, nbrs)
+    sol = Solution(x=y, result=result, stats=stats, nbrs=nb)
+    if throw:
+        if isinstance(result, jax.core.Tracer):
+            jax.debug.callback(_raise_host, result, stats.residual, stats.steps)
+        else:
+            _raise_host(result, stats.residual, stats.steps)
+    return sol

@@ -1,0 +1,25 @@
+"""Exception types. Every message names the offending parameter and its valid range."""
+
+
+class JaxvalveError(ValueError):
+    """Base class for all jaxvalve input errors."""
+
+
+class MeshError(JaxvalveError):
+    """A mesh is broken: bad indices, degenerate or inconsistently oriented triangles, NaN."""
+
+
+class ParameterError(JaxvalveError):
+    """A physical or numerical parameter is outside its valid range."""
+
+
+class ConvergenceError(RuntimeError):
+    """An equilibrium solve did not converge; carries the solver's `Solution`."""
+
+    def __init__(self, message, solution=None):
+        super().__init__(message)
+        self.solution = solution
+
+
+class NeighbourListOverflow(RuntimeError):
+    """A fixed-capacity contact pair list overflowed; rebuild with a larger capacity."""

@@ -1,0 +1,135 @@
+"""Result codes, the solution record, the equilibrium system and the one driver loop.
+
+Solvers are immutable dataclasses with ``init``, ``step`` and ``terminate`` (optimistix
+style); `iterate` owns the `lax.while_loop`.  A solver sees the physics only through an
+`EquilibriumSystem`, whose functions have the form ``fn(y, args)``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import enum
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+
+class RESULTS(enum.IntEnum):
+    """Why a solve stopped."""
+
+    successful = 0
+    max_steps_reached = 1
+    nonfinite = 2
+    stretch_limit = 3
+    neighbour_overflow = 4
+    stagnation = 5
+
+    @property
+    def message(self):
+        return _MESSAGES[self]
+
+
+_MESSAGES = {
+    RESULTS.successful: "converged",
+    RESULTS.max_steps_reached: "the iteration limit was reached before convergence",
+    RESULTS.nonfinite: "the state or the forces became non-finite (NaN or inf)",
+    RESULTS.stretch_limit: "a triangle passed the material's stretch limit (Gent) or collapsed",
+    RESULTS.neighbour_overflow: "the contact pair list overflowed its capacity",
+    RESULTS.stagnation: "the solver stagnated: no step reduced the residual",
+}
+
+
+class EquilibriumSystem(NamedTuple):
+    """Functions of the state y (N, 3) and args, closed over the static problem.
+
+    force(y, args) -> (N, 3): total force, zero rows at fixed nodes.
+    scale(y, args) -> (): force scale for the relative residual (||F_pressure||).
+    admissible(y, args) -> bool: all triangles inside the material's stretch limit.
+    bound(y, args) -> (N,): per-node stiffness bound (N/mm).
+    block_diag(y, args) -> (N, 3, 3): stiffness diagonal blocks (preconditioner).
+    update(y, args) -> args: refresh of the contact pair list (identity without contact).
+    overflow(args) -> bool: a pair list overflowed.
+    laplacian(v, args) -> (N, k): cotangent Laplacian of the reference mesh applied to v.
+    free: (N,) bool.
+    """
+
+    force: Callable
+    scale: Callable
+    admissible: Callable
+    bound: Callable
+    block_diag: Callable
+    update: Callable
+    overflow: Callable
+    laplacian: Callable
+    free: Any
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Stats:
+    """steps: outer iterations; force_evals: residual evaluations (incl. line search);
+    hvps: Hessian-vector products; residual: final ||F_free|| / ||F_pressure||."""
+
+    steps: Any
+    force_evals: Any
+    hvps: Any
+    residual: Any
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Solution:
+    """Equilibrium ``x`` (N, 3) mm, ``result`` (RESULTS code, int array), `Stats`, and the
+    contact pair list used at the end (or None)."""
+
+    x: Any
+    result: Any
+    stats: Stats
+    nbrs: Any = None
+
+    @property
+    def converged(self):
+        return bool(int(self.result) == RESULTS.successful)
+
+    def describe(self):
+        r = RESULTS(int(self.result))
+        return (f"{r.name}: {r.message} (steps={int(self.stats.steps)}, "
+                f"relative residual={float(self.stats.residual):.3e})")
+
+
+def relative_residual(system, y, args, F=None):
+    F = system.force(y, args) if F is None else F
+    s = system.scale(y, args)
+    return jnp.linalg.norm(F) / jnp.where(s > 0, s, 1.0)
+
+
+def check_state(system, y, args, F):
+    """RESULTS code for an invalid state (nonfinite / stretch limit / overflow), else -1."""
+    finite = jnp.all(jnp.isfinite(y)) & jnp.all(jnp.isfinite(F))
+    code = jnp.where(~finite, RESULTS.nonfinite, -1)
+    code = jnp.where((code < 0) & ~system.admissible(y, args), RESULTS.stretch_limit, code)
+    code = jnp.where((code < 0) & system.overflow(args), RESULTS.neighbour_overflow, code)
+    return code
+
+
+def iterate(solver, system, y0, args):
+    """Run ``solver`` from y0 in one `lax.while_loop`.  Returns (y, args, state, result, n)."""
+    args = system.update(y0, args)
+    state = solver.init(system, y0, args)
+    done, result = solver.terminate(system, y0, args, state)
+
+    def cond(c):
+        _, _, _, n, done, _ = c
+        return (~done) & (n < solver.max_steps)
+
+    def body(c):
+        y, args, state, n, _, _ = c
+        args = system.update(y, args)
+        y, state = solver.step(system, y, args, state)
+        done, result = solver.terminate(system, y, args, state)
+        return y, args, state, n + 1, done, result
+
+    y, args, state, n, done, result = jax.lax.while_loop(
+        cond, body, (y0, args, state, jnp.asarray(0), done, result))
+    result = jnp.where(done, result, RESULTS.max_steps_reached)
+    return y, args, state, result, n

@@ -1,0 +1,72 @@
+"""FIRE (Bitzek et al. 2006, Guenole et al. 2020): damped inertial relaxation."""
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from .base import RESULTS, check_state, relative_residual
+
+
+@dataclasses.dataclass(frozen=True)
+class FIRE:
+    """FIRE with per-node masses equal to the stiffness bound (N/mm), so that every mode has
+    angular frequency <= 1 and ``dt_max`` is dimensionless.  Masses are refreshed every
+    ``refresh`` steps (stiffening materials).  Stops at relative residual < rtol."""
+
+    rtol: float = 1e-6
+    max_steps: int = 50_000
+    dt_start: float = 0.1
+    dt_max: float = 1.0
+    n_min: int = 5
+    f_inc: float = 1.1
+    f_dec: float = 0.5
+    alpha_start: float = 0.1
+    f_alpha: float = 0.99
+    refresh: int = 100
+
+    def _mass(self, system, y, args):
+        b = system.bound(y, args)
+        return jnp.where(system.free, b, 1.0)[:, None]
+
+    def init(self, system, y, args):
+        F = system.force(y, args)
+        return dict(F=F, v=jnp.zeros_like(y), m=self._mass(system, y, args),
+                    dt=jnp.asarray(self.dt_start, y.dtype),
+                    alpha=jnp.asarray(self.alpha_start, y.dtype),
+                    npos=jnp.asarray(0), n=jnp.asarray(0), evals=jnp.asarray(1))
+
+    def step(self, system, y, args, s):
+        F, v, m = s["F"], s["v"], s["m"]
+        sq = jnp.sqrt(m)
+        f = F / sq  # force in mass-scaled coordinates; v is the scaled velocity
+        power = jnp.sum(f * v)
+        up = power > 0
+        npos = jnp.where(up, s["npos"] + 1, 0)
+        grow = up & (npos > self.n_min)
+        dt = jnp.where(grow, jnp.minimum(s["dt"] * self.f_inc, self.dt_max),
+                       jnp.where(up, s["dt"], s["dt"] * self.f_dec))
+        alpha = jnp.where(grow, s["alpha"] * self.f_alpha,
+                          jnp.where(up, s["alpha"], self.alpha_start))
+        # on uphill motion: step back half a step and stop (FIRE 2.0)
+        y = jnp.where(up, y, y - 0.5 * s["dt"] * v / sq)
+        v = jnp.where(up, v, 0.0)
+        v = v + dt * f
+        vn = jnp.linalg.norm(v)
+        fn = jnp.linalg.norm(f)
+        v = (1.0 - alpha) * v + alpha * vn * f / jnp.where(fn > 0, fn, 1.0)
+        y = y + dt * v / sq
+        F = system.force(y, args)
+        n = s["n"] + 1
+        m = jax.lax.cond(n % self.refresh == 0,
+                         lambda: jnp.maximum(m, self._mass(system, y, args)), lambda: m)
+        return y, dict(F=F, v=v, m=m, dt=dt, alpha=alpha, npos=npos, n=n, evals=s["evals"] + 1)
+
+    def terminate(self, system, y, args, s):
+        ok = relative_residual(system, y, args, s["F"]) < self.rtol
+        bad = check_state(system, y, args, s["F"])
+        return ok | (bad >= 0), jnp.where(bad >= 0, bad, RESULTS.successful)
+
+    def stats(self, s):
+        return dict(force_evals=s["evals"], hvps=jnp.asarray(0))

@@ -1,0 +1,64 @@
+"""The paper's Algorithm 2.1: damped fixed point x <- x + delta F."""
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from .base import RESULTS, check_state, relative_residual
+
+
+@dataclasses.dataclass(frozen=True)
+class FixedPoint:
+    """Algorithm 2.1 (explicit damped fixed point).
+
+    delta: step (mm/N).  None derives it from a stiffness bound: delta = safety / max_i b_i,
+    with b_i >= lambda_max(K) the per-node element bound (`assembly.stiffness_bound`), which
+    keeps the iteration stable (it needs delta < 2 / lambda_max).  Stiffening materials raise
+    lambda_max along the path, so the bound is re-evaluated every ``refresh`` steps and delta
+    only ever decreases (refresh=0 keeps the paper's constant delta).
+    Stopping: the paper's rule ||dx^n|| < step_rtol ||dx^0|| when ``rtol`` is None, else the
+    relative force residual ||F_free|| / ||F_pressure|| < rtol.
+    """
+
+    rtol: float | None = None
+    step_rtol: float = 1e-3
+    max_steps: int = 200_000
+    delta: float | None = None
+    safety: float = 1.0
+    refresh: int = 200
+
+    def _delta_bound(self, system, y, args):
+        return self.safety / jnp.max(jnp.where(system.free, system.bound(y, args), 0.0))
+
+    def init(self, system, y, args):
+        F = system.force(y, args)
+        delta = (self._delta_bound(system, y, args) if self.delta is None
+                 else jnp.asarray(self.delta, y.dtype))
+        dx = delta * jnp.linalg.norm(F)
+        return dict(F=F, delta=delta, dx0=dx, dx=dx, n=jnp.asarray(0), evals=jnp.asarray(1))
+
+    def step(self, system, y, args, s):
+        y = y + s["delta"] * s["F"]
+        F = system.force(y, args)
+        delta = s["delta"]
+        if self.delta is None and self.refresh > 0:
+            delta = jax.lax.cond((s["n"] + 1) % self.refresh == 0,
+                                 lambda: jnp.minimum(delta, self._delta_bound(system, y, args)),
+                                 lambda: delta)
+        dx = delta * jnp.linalg.norm(F)
+        return y, dict(F=F, delta=delta, dx0=s["dx0"], dx=dx, n=s["n"] + 1,
+                       evals=s["evals"] + 1)
+
+    def terminate(self, system, y, args, s):
+        if self.rtol is None:
+            ok = s["dx"] < self.step_rtol * s["dx0"]
+        else:
+            ok = relative_residual(system, y, args, s["F"]) < self.rtol
+        bad = check_state(system, y, args, s["F"])
+        done = ok | (bad >= 0)
+        return done, jnp.where(bad >= 0, bad, RESULTS.successful)
+
+    def stats(self, s):
+        return dict(force_evals=s["evals"], hvps=jnp.asarray(0))
