@@ -145,10 +145,11 @@ def laplacian_apply(v, triangles, cot):
 
 
 # ------------------------------------------------------------- stiffness bounds
-def _element_hessians(x, problem, params, ref):
-    """9x9 Hessian of each triangle's strain energy (M, 9, 9)."""
+def _element_hessians(x, problem, params, ref, stiffest=False):
+    """9x9 Hessian of each triangle's strain energy (M, 9, 9); with ``stiffest`` the
+    material is taken at its largest tangent modulus (piecewise spring moduli)."""
     tri = problem.triangles
-    mat = params.material
+    mat = params.material.stiffest() if stiffest else params.material
 
     def e_one(xe, Dm_inv, area, springs):
         C = right_cauchy_green(xe.reshape(3, 3), jnp.array([[0, 1, 2]]), Dm_inv[None])
@@ -170,10 +171,10 @@ def stiffness_bound(x, problem, params, ref):
     """Per-node upper bound (N,) on the largest stiffness eigenvalue, N/mm.
 
     lambda_max(K) <= max_i sum_{T ni i} lambda_max(K_T) (the element matrices are assembled
-    into K).  Adds the pressure stiffness (|P| times the edge lengths at the node) and the
+    into K), with the material at its stiffest tangent modulus.  Adds the pressure stiffness (|P| times the edge lengths at the node) and the
     contact law's own bound."""
     tri = problem.triangles
-    Hs = _element_hessians(x, problem, params, ref)
+    Hs = _element_hessians(x, problem, params, ref, stiffest=True)
     lam = jnp.max(jnp.abs(jnp.linalg.eigvalsh(Hs)), axis=-1)  # (M,)
     xt = x[tri]
     emax = jnp.max(jnp.linalg.norm(xt - jnp.roll(xt, 1, axis=1), axis=-1), axis=-1)

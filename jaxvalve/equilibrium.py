@@ -172,6 +172,8 @@ def solve(problem: Problem, params: Params, x0, solver=None, *, throw: bool = Tr
     if not isinstance(x0, jax.core.Tracer) and not np.all(np.isfinite(np.asarray(x0))):
         raise ParameterError("x0 holds a non-finite coordinate; every coordinate must be finite")
     validate_params(params)
+    # strong float64 leaves: a Python float and an array then share one compiled solve
+    params = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype=x0.dtype), params)
     if params.contact is not None and nbrs is None:
         nbrs = params.contact.init_pairs(x0, problem)
     y, result, stats, nb, _ = _solve_jit(solver, problem, params, x0, nbrs)

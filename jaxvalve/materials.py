@@ -65,6 +65,10 @@ class Material:
     def validate(self):
         return self
 
+    def stiffest(self):
+        """The same model at its largest tangent modulus; used only for stiffness bounds."""
+        return self
+
     def stretch_ok(self, C):
         """Bool (M,): state admissible for this model (finite energy)."""
         _, det = invariants(C)
@@ -233,6 +237,12 @@ class MassSpring(Material):
                 raise ParameterError("mass-spring: strain breaks need 0 <= break1 <= break2; "
                                      f"got break1={self.break1}, break2={self.break2}")
         return self
+
+    def stiffest(self):
+        emax = lambda *v: None if v[0] is None else jnp.maximum(jnp.maximum(v[0], v[1]), v[2])
+        ef = emax(self.E1, self.E2, self.E3)
+        ecf = emax(self.E1_cf, self.E2_cf, self.E3_cf)
+        return dataclasses.replace(self, E1=ef, E2=ef, E3=ef, E1_cf=ecf, E2_cf=ecf, E3_cf=ecf)
 
     def moduli(self, cos2):
         def mix(ef, ecf):

@@ -16,7 +16,8 @@ class FixedPoint:
     delta: step (mm/N).  None derives it from a stiffness bound: delta = safety / max_i b_i,
     with b_i >= lambda_max(K) the per-node element bound (`assembly.stiffness_bound`), which
     keeps the iteration stable (it needs delta < 2 / lambda_max).  Stiffening materials raise
-    lambda_max along the path, so the bound is re-evaluated every ``refresh`` steps and delta
+    lambda_max along the path, so the bound takes each model at its stiffest tangent modulus,
+    is re-evaluated every ``refresh`` steps and whenever ||F|| doubles in one step, and delta
     only ever decreases (refresh=0 keeps the paper's constant delta).
     Stopping: the paper's rule ||dx^n|| < step_rtol ||dx^0|| when ``rtol`` is None, else the
     relative force residual ||F_free|| / ||F_pressure|| < rtol.
@@ -36,19 +37,22 @@ class FixedPoint:
         F = system.force(y, args)
         delta = (self._delta_bound(system, y, args) if self.delta is None
                  else jnp.asarray(self.delta, y.dtype))
-        dx = delta * jnp.linalg.norm(F)
-        return dict(F=F, delta=delta, dx0=dx, dx=dx, n=jnp.asarray(0), evals=jnp.asarray(1))
+        Fn = jnp.linalg.norm(F)
+        return dict(F=F, Fn=Fn, delta=delta, dx0=delta * Fn, dx=delta * Fn, n=jnp.asarray(0),
+                    evals=jnp.asarray(1))
 
     def step(self, system, y, args, s):
         y = y + s["delta"] * s["F"]
         F = system.force(y, args)
         delta = s["delta"]
+        Fn = jnp.linalg.norm(F)
         if self.delta is None and self.refresh > 0:
-            delta = jax.lax.cond((s["n"] + 1) % self.refresh == 0,
+            # refresh on schedule, and at once when the force grows (onset of instability)
+            due = ((s["n"] + 1) % self.refresh == 0) | (Fn > 2.0 * s["Fn"])
+            delta = jax.lax.cond(due,
                                  lambda: jnp.minimum(delta, self._delta_bound(system, y, args)),
                                  lambda: delta)
-        dx = delta * jnp.linalg.norm(F)
-        return y, dict(F=F, delta=delta, dx0=s["dx0"], dx=dx, n=s["n"] + 1,
+        return y, dict(F=F, Fn=Fn, delta=delta, dx0=s["dx0"], dx=delta * Fn, n=s["n"] + 1,
                        evals=s["evals"] + 1)
 
     def terminate(self, system, y, args, s):

@@ -1,0 +1,67 @@
+"""Implicit (adjoint) gradients of functions of the equilibrium vs central finite differences."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxvalve import equilibrium, meshgen
+from jaxvalve.materials import Gent, MassSpring, NeoHookean, StVenantKirchhoff
+from jaxvalve.problem import Params, make_problem, mmhg
+from jaxvalve.solvers import NewtonKrylov
+
+SOLVER = NewtonKrylov(rtol=1e-12)
+
+
+@pytest.fixture(scope="module")
+def disk():
+    p, t, b = meshgen.disk(5.0, 3)
+    prob, ref = make_problem(p, t, fixed=b)
+    return prob, ref, jnp.asarray(meshgen.lift(p)), b
+
+
+def objective(prob):
+    def f(params, x0):
+        x = equilibrium.solve(prob, params, x0, SOLVER).x
+        return jnp.sum(x[:, 2] ** 2) + jnp.sum(x[:, 0] * x[:, 2])
+    return f
+
+
+def _fd(fun, h):
+    return (fun(h) - fun(-h)) / (2 * h)
+
+
+@pytest.mark.parametrize("mat", [StVenantKirchhoff(1.0, 0.45), NeoHookean(1 / 3),
+                                 Gent(1 / 3, 2.3), MassSpring(0.5, 1.0, 2.0, break1=0.01,
+                                                              break2=0.03)],
+                         ids=["stvk", "nh", "gent", "ms"])
+def test_implicit_gradient_matches_central_differences(disk, mat):
+    prob, ref, x0, fixed = disk
+    params = Params(ref=ref, material=mat, thickness=0.3, pressure=mmhg(80.0))
+    f = objective(prob)
+    g, gx0 = jax.grad(f, argnums=(0, 1))(params, x0)
+    leaves, tdef = jax.tree_util.tree_flatten(params)
+    gleaves = jax.tree_util.tree_leaves(g)
+    checked = 0
+    for i, (leaf, gl) in enumerate(zip(leaves, gleaves)):
+        if jnp.ndim(leaf) != 0 or float(leaf) == 0.0:
+            continue
+        h = 1e-5 * abs(float(leaf))
+
+        def fun(e, i=i, leaf=leaf):
+            new = list(leaves)
+            new[i] = leaf + e
+            return f(jax.tree_util.tree_unflatten(tdef, new), x0)
+
+        num = float(_fd(fun, h))
+        assert abs(float(gl) - num) <= 1e-4 * abs(num) + 1e-9, (i, float(gl), num)
+        checked += 1
+    assert checked >= 3  # material moduli, thickness, pressure
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=ref.shape)
+    num = float(_fd(lambda e: f(params.replace(ref=ref + e * d), x0), 1e-5))
+    np.testing.assert_allclose(float(jnp.sum(g.ref * d)), num, rtol=1e-4)
+    d = rng.normal(size=x0.shape) * fixed[:, None]
+    num = float(_fd(lambda e: f(params, x0 + e * d), 1e-5))
+    np.testing.assert_allclose(float(jnp.sum(gx0 * d)), num, rtol=1e-4)
+    # the equilibrium does not depend on the start position of free nodes
+    assert float(jnp.max(jnp.abs(gx0[~fixed]))) == 0.0

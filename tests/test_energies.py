@@ -1,0 +1,233 @@
+"""Strain energies: the closed-form TBS force (eq. 2.6), rest and rigid invariance, analytic
+membrane tensions under homogeneous stretch, gradient checks and the Gent barrier."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.test_util import check_grads
+
+from jaxvalve import assembly, meshgen
+from jaxvalve.materials import Gent, MassSpring, NeoHookean, StVenantKirchhoff
+from jaxvalve.problem import Params, make_problem
+
+H = 0.3
+MODELS = {
+    "stvk": StVenantKirchhoff(E=1.3, nu=0.45),
+    "neo-hookean": NeoHookean(mu=0.4),
+    "gent": Gent(mu=0.4, Jm=2.3),
+    "mass-spring": MassSpring(E1=0.137, E2=0.568, E3=0.968, E1_cf=0.063, E2_cf=0.57,
+                              E3_cf=1.4),
+}
+
+
+def _setup(material, ref, tri, fibre_angle=0.3):
+    prob, ref = make_problem(ref, tri)
+    params = Params(ref=ref, material=material, thickness=H, fibre_angle=fibre_angle)
+    return prob, params, assembly.prepare(prob, params)
+
+
+def _energy(x, prob, params, r):
+    return assembly.elastic_energy(x, prob, params, r)
+
+
+def tbs_forces(X, x, E, nu):
+    """Paper eq. 2.6, transcribed directly: forces (3, 3) on one triangle."""
+    X = np.c_[X, np.zeros(3)] if X.shape[1] == 2 else X
+    A = 0.5 * np.linalg.norm(np.cross(X[1] - X[0], X[2] - X[0]))
+
+    def angle(i):
+        u, v = X[(i + 1) % 3] - X[i], X[(i + 2) % 3] - X[i]
+        return np.arccos(u @ v / np.linalg.norm(u) / np.linalg.norm(v))
+
+    cot = [1 / np.tan(angle(i)) for i in range(3)]
+    kap = [E * (2 * cot[k] ** 2 + 1 - nu) / (16 * (1 - nu**2) * A) for k in range(3)]
+    c = [E * (2 * cot[(k + 1) % 3] * cot[(k + 2) % 3] + nu - 1) / (16 * (1 - nu**2) * A)
+         for k in range(3)]
+
+    def d2l(i):  # squared length change of the edge opposite vertex i
+        j, k = (i + 1) % 3, (i + 2) % 3
+        return np.sum((x[j] - x[k]) ** 2) - np.sum((X[j] - X[k]) ** 2)
+
+    F = np.zeros((3, 3))
+    for i in range(3):
+        for j in range(3):
+            if j != i:
+                k = 3 - i - j
+                F[i] += (kap[k] * d2l(k) + c[j] * d2l(i) + c[i] * d2l(j)) * (x[j] - x[i])
+    return F
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_stvk_autodiff_force_equals_tbs_closed_form(seed):
+    rng = np.random.default_rng(seed)
+    X = rng.normal(size=(3, 2))
+    a, b = X[1] - X[0], X[2] - X[0]
+    if a[0] * b[1] - a[1] * b[0] < 0:
+        X = X[[0, 2, 1]]
+    x = np.c_[X, np.zeros(3)] + 0.3 * rng.normal(size=(3, 3))
+    E, nu = rng.uniform(0.1, 10), rng.uniform(-0.5, 0.5)
+    mat = StVenantKirchhoff(E=E, nu=nu)
+    prob, params, r = _setup(mat, X, [[0, 1, 2]])
+    # the paper's potential is per unit area (thickness folded into E): H = 1 here
+    params = params.replace(thickness=1.0)
+    F = -jax.grad(_energy)(jnp.asarray(x), prob, params, r)
+    np.testing.assert_allclose(F, tbs_forces(X, x, E, nu), rtol=1e-11, atol=1e-12)
+
+
+def _random_sheet(seed=0):
+    p, t = meshgen.rectangle(3.0, 2.0, 3, 2)
+    rng = np.random.default_rng(seed)
+    p = p + 0.05 * rng.normal(size=p.shape)
+    return p, t
+
+
+def _rotation(seed):
+    q, _ = np.linalg.qr(np.random.default_rng(seed).normal(size=(3, 3)))
+    return q * np.sign(np.linalg.det(q))
+
+
+@pytest.mark.parametrize("name", MODELS)
+def test_zero_energy_and_force_at_rest_and_under_rigid_motion(name):
+    p, t = _random_sheet()
+    prob, params, r = _setup(MODELS[name], p, t)
+    x_rest = jnp.asarray(meshgen.lift(p))
+    Q = _rotation(1)
+    x_rigid = x_rest @ Q.T + np.array([1.0, -2.0, 0.5])
+    for x in (x_rest, x_rigid):
+        e = _energy(x, prob, params, r)
+        f = -jax.grad(_energy)(x, prob, params, r)
+        assert abs(float(e)) < 1e-12
+        assert float(jnp.max(jnp.abs(f))) < 1e-11
+
+
+@pytest.mark.parametrize("name", MODELS)
+def test_energy_and_forces_invariant_under_rigid_motion_of_deformed_state(name):
+    p, t = _random_sheet(2)
+    prob, params, r = _setup(MODELS[name], p, t)
+    x = jnp.asarray(meshgen.lift(p)) + 0.1 * np.random.default_rng(3).normal(size=(len(p), 3))
+    Q = _rotation(4)
+    e1 = _energy(x, prob, params, r)
+    e2 = _energy(x @ Q.T + 3.0, prob, params, r)
+    f1 = -jax.grad(_energy)(x, prob, params, r)
+    f2 = -jax.grad(_energy)(x @ Q.T + 3.0, prob, params, r)
+    np.testing.assert_allclose(e2, e1, rtol=1e-12)
+    np.testing.assert_allclose(f2, f1 @ Q.T, atol=1e-12 * float(jnp.max(jnp.abs(f1))) + 1e-14)
+    # internal forces balance: zero total force and zero total moment
+    np.testing.assert_allclose(jnp.sum(f1, 0), 0, atol=1e-12)
+    np.testing.assert_allclose(jnp.sum(jnp.cross(x, f1), 0), 0, atol=1e-11)
+
+
+# ---------------------------------------------------------------- analytic tensions
+def analytic_tension(name, mat, l1, l2):
+    """Nominal membrane tension T1 = d(H W)/d lambda1 (N/mm) under F = diag(l1, l2)."""
+    if name == "stvk":
+        lam = mat.E * mat.nu / (1 - mat.nu**2)
+        mu = mat.E / (2 * (1 + mat.nu))
+        e1, e2 = (l1**2 - 1) / 2, (l2**2 - 1) / 2
+        return H * l1 * (lam * (e1 + e2) + 2 * mu * e1)
+    if name == "neo-hookean":
+        return H * mat.mu * (l1 - 1 / (l1**3 * l2**2))
+    if name == "gent":
+        i1 = l1**2 + l2**2 + 1 / (l1 * l2) ** 2
+        return H * mat.mu * mat.Jm / (mat.Jm - (i1 - 3)) * (l1 - 1 / (l1**3 * l2**2))
+    if name == "mass-spring":
+        # square cells: each triangle has a horizontal, a vertical and a 45-degree spring
+        theta_f = 0.3  # fibre angle
+
+        def sigma(eps, Ef, Ecf):
+            Ek = [np.sqrt(ef**2 * c2 + ecf**2 * (1 - c2)) for ef, ecf in zip(Ef, Ecf)]
+            b1, b2 = 0.175, 0.3
+            s1 = Ek[0] * min(eps, b1)
+            s2 = Ek[1] * (np.clip(eps, b1, b2) - b1)
+            s3 = Ek[2] * (max(eps, b2) - b2)
+            return s1 + s2 + s3
+
+        total = 0.0
+        Ef = (mat.E1, mat.E2, mat.E3)
+        Ecf = (mat.E1_cf, mat.E2_cf, mat.E3_cf)
+        # springs of the two triangle kinds (diagonal at 45 or 135 degrees), half each
+        for diag in (np.pi / 4, 3 * np.pi / 4):
+            for ang in (0.0, np.pi / 2, diag):
+                c, s = np.cos(ang), np.sin(ang)
+                c2 = np.cos(ang - theta_f) ** 2
+                eps = np.sqrt((l1 * c) ** 2 + (l2 * s) ** 2) - 1
+                total += 0.5 * sigma(eps, Ef, Ecf) * l1 * c**2 / (1 + eps)
+        return H * total
+    raise KeyError(name)
+
+
+@pytest.mark.parametrize("name", MODELS)
+@pytest.mark.parametrize("kind", ["uniaxial", "equibiaxial"])
+def test_homogeneous_stretch_tension_matches_analytic(name, kind):
+    lx, ly = 2.0, 2.0
+    p, t = meshgen.rectangle(lx, ly, 4, 4)
+    mat = MODELS[name]
+    prob, params, r = _setup(mat, p, t)
+    for l1 in (1.05, 1.2, 1.35):
+        l2 = 1.0 if kind == "uniaxial" else l1
+        x = jnp.asarray(meshgen.lift(p * np.array([l1, l2])))
+        f = -jax.grad(_energy)(x, prob, params, r)
+        # virtual work: dU/dl1 = -sum_i F_ix X_i, and dU/dl1 = T1 * area
+        t1 = -float(jnp.sum(f[:, 0] * p[:, 0])) / (lx * ly)
+        np.testing.assert_allclose(t1, analytic_tension(name, mat, l1, l2), rtol=1e-10)
+
+
+@pytest.mark.parametrize("name", MODELS)
+def test_check_grads_on_energy_density(name):
+    mat = MODELS[name]
+    rng = np.random.default_rng(0)
+    Fd = np.eye(3, 2)[None] + 0.1 * rng.normal(size=(4, 3, 2))
+    C = jnp.asarray(np.swapaxes(Fd, 1, 2) @ Fd)
+    geom = None
+    if mat.needs_springs:
+        p, t = meshgen.rectangle(2.0, 1.0, 2, 1)
+        _, params, r = _setup(mat, p, t)
+        geom = r.springs
+        C = C[: len(t)]
+    check_grads(lambda c: jnp.sum(mat.energy_density(c, geom)), (C,), order=2,
+                modes=["fwd", "rev"], atol=1e-6, rtol=1e-6)
+
+
+def test_gent_past_stretch_limit_is_infinite_energy_and_finite_gradient():
+    p, t = meshgen.rectangle(1.0, 1.0, 1, 1)
+    mat = Gent(mu=0.4, Jm=0.5)
+    prob, params, r = _setup(mat, p, t)
+    x = jnp.asarray(meshgen.lift(p * np.array([2.0, 1.0])))  # I1 - 3 = 1.5 > Jm
+    assert np.isinf(float(_energy(x, prob, params, r)))
+    g = jax.grad(_energy)(x, prob, params, r)
+    assert np.all(np.isfinite(np.asarray(g)))
+    assert not bool(assembly.stretch_admissible(x, prob, params, r))
+
+
+def test_mass_spring_anisotropy_fibre_direction_is_stiffer():
+    """A spring along the fibres takes E_f (eq. 2.4), across them E_cf."""
+    p, t = meshgen.rectangle(2.0, 2.0, 4, 4)
+    mat = MassSpring(E1=1.0, E2=1.0, E3=1.0, E1_cf=0.2, E2_cf=0.2, E3_cf=0.2)
+    x = jnp.asarray(meshgen.lift(p * np.array([1.1, 1.0])))
+    energies = []
+    for ang in (0.0, np.pi / 2):
+        prob, params, r = _setup(mat, p, t, fibre_angle=ang)
+        energies.append(float(_energy(x, prob, params, r)))
+    assert energies[0] > 3 * energies[1]
+    # per-spring angles give the same energy as the template direction
+    prob, params, r = _setup(mat, p, t, fibre_angle=0.0)
+    u = np.asarray(r.springs.unit)
+    per_spring = np.arccos(np.clip(np.abs(u[..., 0]), 0, 1))
+    params2 = params.replace(fibre_angle=jnp.asarray(per_spring))
+    r2 = assembly.prepare(prob, params2)
+    np.testing.assert_allclose(float(_energy(x, prob, params2, r2)), energies[0], rtol=1e-12)
+
+
+def test_mass_spring_linear_small_strain_matches_isotropic_membrane():
+    """Linear springs (eq. 2.3) under equibiaxial strain eps: every spring stretches by eps,
+    w = 3 H E eps^2 / 2 per unit area, so T1 = 1.5 E H eps on any mesh (the effective
+    membrane of an equilateral spring net has Young's modulus E H and Poisson ratio 1/3)."""
+    p, t = meshgen.rectangle(2.0, 2.0, 4, 4)
+    mat = MassSpring.linear(1.0)
+    prob, params, r = _setup(mat, p, t)
+    eps = 1e-4
+    x = jnp.asarray(meshgen.lift(p * (1 + eps)))
+    f = -jax.grad(_energy)(x, prob, params, r)
+    t1 = -float(jnp.sum(f[:, 0] * p[:, 0])) / 4.0
+    # each triangle: 3 springs with energy H A E eps^2 / 2 -> w = 3/2 H E eps^2, T1 = dw/dl1 / 2
+    np.testing.assert_allclose(t1, 1.5 * H * 1.0 * eps, rtol=1e-9)

@@ -1,0 +1,74 @@
+"""Bad input gets a clear error that names the parameter and its valid range."""
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxvalve import equilibrium, meshgen
+from jaxvalve.errors import MeshError, ParameterError
+from jaxvalve.materials import Gent, MassSpring, NeoHookean, StVenantKirchhoff
+from jaxvalve.problem import Params, make_problem, validate_params
+
+P, T = meshgen.rectangle(2.0, 1.0, 2, 1)
+
+
+@pytest.mark.parametrize("ref,tri,match", [
+    (P, np.array([[0, 1, 99]]), r"indices must lie in \[0, 5\]"),
+    (P, np.array([[0, -1, 2]]), "indices must lie"),
+    (P, np.array([[0, 0, 2]]), "3 distinct nodes"),
+    (np.array([[0, 0], [1, 0], [2, 0.0]]), np.array([[0, 1, 2]]), "degenerate"),
+    (np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0.0]]), np.array([[0, 1, 2]]), "degenerate"),
+    (P, T[:, [0, 2, 1]], "clockwise"),
+    (np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0.0]]), np.array([[0, 1, 2], [1, 2, 3]]),
+     "same direction"),
+    (np.where(np.arange(P.size).reshape(P.shape) == 3, np.nan, P), T, "non-finite"),
+    (P[:, :1], T, "shape"),
+    (P, T[:, :2], "shape"),
+])
+def test_broken_mesh_is_rejected(ref, tri, match):
+    with pytest.raises(MeshError, match=match):
+        make_problem(ref, tri)
+
+
+def test_inconsistent_2d_orientation_is_rejected():
+    tri = T.copy()
+    tri[0] = tri[0, [0, 2, 1]]
+    with pytest.raises(MeshError, match="clockwise"):
+        make_problem(P, tri)
+
+
+def test_all_fixed_and_mixed_bodies_are_rejected():
+    with pytest.raises(MeshError, match="free"):
+        make_problem(P, T, fixed=np.ones(len(P), bool))
+    with pytest.raises(MeshError, match="body"):
+        make_problem(P, T, body=np.arange(len(P)))
+
+
+@pytest.mark.parametrize("mat,match", [
+    (StVenantKirchhoff(E=0.0, nu=0.3), "E must be > 0"),
+    (StVenantKirchhoff(E=-1.0, nu=0.3), "E must be > 0"),
+    (StVenantKirchhoff(E=1.0, nu=0.6), r"nu must lie in \(-1, 0.5\]"),
+    (StVenantKirchhoff(E=1.0, nu=-1.0), r"nu must lie in \(-1, 0.5\]"),
+    (StVenantKirchhoff(E=float("nan"), nu=0.3), "E must be finite"),
+    (NeoHookean(mu=-0.1), "mu must be > 0"),
+    (Gent(mu=0.3, Jm=0.0), "Jm must be > 0"),
+    (MassSpring(E1=0.1, E2=-0.5, E3=1.0), "E2 must be > 0"),
+    (MassSpring(E1=0.1, E2=0.5, E3=1.0, break1=0.4, break2=0.3), "break1 <= break2"),
+])
+def test_bad_moduli_are_rejected(mat, match):
+    prob, ref = make_problem(P, T)
+    with pytest.raises(ParameterError, match=match):
+        validate_params(Params(ref=ref, material=mat))
+
+
+def test_bad_thickness_pressure_and_start_are_rejected():
+    prob, ref = make_problem(P, T, fixed=[0, 3])
+    good = Params(ref=ref, material=NeoHookean(0.3))
+    with pytest.raises(ParameterError, match="thickness H must be > 0"):
+        validate_params(good.replace(thickness=0.0))
+    with pytest.raises(ParameterError, match="pressure P must be finite"):
+        validate_params(good.replace(pressure=float("nan")))
+    x0 = jnp.asarray(meshgen.lift(P))
+    with pytest.raises(ParameterError, match="x0 holds a non-finite"):
+        equilibrium.solve(prob, good, x0.at[1, 2].set(jnp.nan))
+    with pytest.raises(ParameterError, match=r"x0 must have shape \(6, 3\)"):
+        equilibrium.solve(prob, good, x0[:, :2])
