@@ -10,11 +10,11 @@
 
    Hencky (1915) solved the problem by a power series; his numbers contained an arithmetic
    error later corrected by Chien (1948) and Alekseev (1953), see also Fichter (1997, NASA
-   TP-3658).  Timoshenko & Woinowsky-Krieger (1959, sec. 104) still quote Hencky's original
+   TP-3658).  Timoshenko & Woinowsky-Krieger (Theory of Plates and Shells) quote Hencky's original
    K_w = 0.662, K_sigma = 0.423 for nu = 0.3; the corrected values are K_w(0.3) = 0.6534,
    K_sigma(0.3) = 0.4311 (radial stress coefficient b0 = 4 K_sigma = 1.724).  The curve fit
    K_w(nu) ~ 0.7179 - 0.1706 nu - 0.1495 nu^2 of Komaragiri, Begley & Simmonds (2005, J.
-   Appl. Mech. 72:203) agrees with `hencky_constants` to 4e-4 over 0.25 <= nu <= 0.5.
+   Appl. Mech. 72:203) agrees with `hencky_constants` to 6e-4 over 0.25 <= nu <= 0.5.
 
    Derivation used here.  With phi = r sigma_r, sigma_theta = d(r sigma_r)/dr (radial
    equilibrium), w' = -q r / (2 h sigma_r) (vertical equilibrium) and compatibility
@@ -28,7 +28,8 @@
        w(rho) / (a (q a / (E h))^(1/3)) = 1/2 int_rho^1 t / s(t) dt.
 
    The ODE does not depend on nu; nu enters only through the edge condition.  It is solved
-   by shooting on s(0) (a regular series start at rho -> 0) with `solve_ivp` + `brentq`.
+   with Hencky's power series in rho^2 (default) or by shooting with `solve_ivp`; s(0) is
+   found with `brentq`.
 
 2. Inflated spherical membrane (exact finite-strain solution; Green & Adkins 1960,
    Treloar 1975).  A stress-free sphere of radius R, wall thickness H, inflated by internal
@@ -51,12 +52,34 @@ from scipy.integrate import quad, solve_ivp
 from scipy.optimize import brentq
 
 __all__ = [
-    "hencky_constants", "hencky_center_deflection", "hencky_profile",
+    "hencky_constants", "hencky_center_deflection", "hencky_profile", "hencky_series",
     "sphere_pressure_neo_hookean", "sphere_pressure_gent", "inflated_sphere_stretch",
     "NEO_HOOKEAN_LIMIT_STRETCH",
 ]
 
 _RHO0 = 1e-6  # start of the shooting integration (regular series below it)
+
+
+def hencky_series(s0, n_terms: int = 60):
+    """Hencky's power series s(rho) = sum_k c_k rho^(2k) of s'' + 3 s'/rho = -1/(8 s^2)
+    with s(0) = s0: returns c (n_terms + 1,).  From s^2 L[s] = -1/8, L[s] = s'' + 3 s'/rho
+    = sum_j d_j rho^(2j), d_j = 4 (j+1)(j+2) c_(j+1), matched power by power."""
+    c = np.zeros(n_terms + 1)
+    d = np.zeros(n_terms)
+    c[0] = s0
+    for j in range(n_terms):
+        s2 = np.convolve(c[: j + 1], c[: j + 1])[: j + 1]
+        acc = (-0.125 if j == 0 else 0.0) - np.dot(s2[1:], d[:j][::-1])
+        d[j] = acc / s2[0]
+        c[j + 1] = d[j] / (4.0 * (j + 1) * (j + 2))
+    return c
+
+
+def _series_poly(c):
+    """s as a polynomial in rho (even powers only)."""
+    coef = np.zeros(2 * len(c) - 1)
+    coef[::2] = c
+    return np.polynomial.Polynomial(coef)
 
 
 def _shoot(s0):
@@ -72,37 +95,43 @@ def _shoot(s0):
 
 
 @functools.lru_cache(maxsize=64)
-def _hencky_solution(nu: float):
+def _hencky_solution(nu: float, method: str):
+    """(s0, callable s(rho)) solving the edge condition s'(1) + (1 - nu) s(1) = 0."""
     if not -1.0 < nu <= 0.5:
         raise ValueError(f"nu must lie in (-1, 0.5]; got {nu}")
-
-    def edge(s0):
-        s, sp = _shoot(s0).y[:, -1]
-        return sp + (1.0 - nu) * s
-
+    if method == "series":
+        def edge(s0):
+            s = _series_poly(hencky_series(s0))
+            return s.deriv()(1.0) + (1.0 - nu) * s(1.0)
+    elif method == "shooting":
+        def edge(s0):
+            s, sp = _shoot(s0).y[:, -1]
+            return sp + (1.0 - nu) * s
+    else:
+        raise ValueError(f"method must be 'series' or 'shooting'; got {method!r}")
     s0 = brentq(edge, 0.2, 1.5, xtol=1e-15, rtol=4 * np.finfo(float).eps)
-    return s0, _shoot(s0)
+    if method == "series":
+        return s0, _series_poly(hencky_series(s0))
+    sol = _shoot(s0)
+    return s0, lambda r: sol.sol(np.maximum(r, _RHO0))[0]
 
 
-def hencky_profile(rho, nu: float):
+def hencky_profile(rho, nu: float, method: str = "series"):
     """Dimensionless deflection w(rho) / (a (q a/(E h))^(1/3)) at rho = r/a in [0, 1]."""
-    s0, sol = _hencky_solution(float(nu))
+    _, s = _hencky_solution(float(nu), method)
     rho = np.atleast_1d(np.asarray(rho, float))
-    f = lambda t: t / sol.sol(t)[0]
-    out = []
-    for r in rho:
-        lo = max(r, _RHO0)
-        v = quad(f, lo, 1.0, epsabs=1e-14, epsrel=1e-13, limit=200)[0]
-        if r < _RHO0:  # int_r^RHO0 t/s0 dt
-            v += (_RHO0**2 - r**2) / (2.0 * s0)
-        out.append(0.5 * v)
-    return np.asarray(out)
+    f = lambda t: t / s(t)
+    return np.asarray([0.5 * quad(f, r, 1.0, epsabs=1e-15, epsrel=1e-13, limit=200)[0]
+                       for r in rho])
 
 
-def hencky_constants(nu: float):
-    """(K_w, K_sigma): w0 = K_w a (q a/(E h))^(1/3), sigma_0 = K_sigma (E q^2 a^2/h^2)^(1/3)."""
-    s0, _ = _hencky_solution(float(nu))
-    return float(hencky_profile(0.0, nu)[0]), float(s0)
+def hencky_constants(nu: float, method: str = "series"):
+    """(K_w, K_sigma): w0 = K_w a (q a/(E h))^(1/3), sigma_0 = K_sigma (E q^2 a^2/h^2)^(1/3).
+
+    method: 'series' (Hencky's power series, 60 terms) or 'shooting' (ODE integration);
+    they agree to ~1e-14."""
+    s0, _ = _hencky_solution(float(nu), method)
+    return float(hencky_profile(0.0, nu, method)[0]), float(s0)
 
 
 def hencky_center_deflection(q, a, E, h, nu):
@@ -135,16 +164,17 @@ def inflated_sphere_stretch(P, mu, H, R, Jm=None):
     (1, 7^(1/6)); for Gent lambda in (1, lambda_max) below the first pressure maximum (if
     any) or the stretch limit 2 lam^2 + lam^-4 - 3 = Jm."""
     if Jm is None:
-        f = lambda l: sphere_pressure_neo_hookean(l, mu, H, R) - P
+        pressure = lambda l: float(sphere_pressure_neo_hookean(l, mu, H, R))
         hi = NEO_HOOKEAN_LIMIT_STRETCH
     else:
-        f = lambda l: sphere_pressure_gent(l, mu, Jm, H, R) - P
-        # stretch limit: 2 l^2 + l^-4 - 3 = Jm
+        pressure = lambda l: float(sphere_pressure_gent(l, mu, Jm, H, R))
+        # stretch limit: 2 l^2 + l^-4 - 3 = Jm; the first pressure maximum (if any) below it
         lim = brentq(lambda l: 2 * l**2 + l**-4 - 3 - Jm, 1.0 + 1e-12, 1e3)
         ls = np.linspace(1.0 + 1e-9, lim * (1 - 1e-12), 20001)
-        p = sphere_pressure_gent(ls, mu, Jm, H, R)
-        drop = np.nonzero(np.diff(p) < 0)[0]
+        drop = np.nonzero(np.diff(sphere_pressure_gent(ls, mu, Jm, H, R)) < 0)[0]
         hi = ls[drop[0]] if drop.size else ls[-1]
-    if not 0 < P < f(hi) + P:
-        raise ValueError(f"pressure {P} is outside (0, {f(hi) + P:.6g}], the stable branch")
-    return brentq(f, 1.0 + 1e-14, hi, xtol=1e-15, rtol=4 * np.finfo(float).eps)
+    p_max = pressure(hi)
+    if not 0 < P < p_max:
+        raise ValueError(f"pressure {P} is outside (0, {p_max:.6g}), the stable branch")
+    return brentq(lambda l: pressure(l) - P, 1.0 + 1e-14, hi, xtol=1e-15,
+                  rtol=4 * np.finfo(float).eps)

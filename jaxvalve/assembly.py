@@ -181,6 +181,10 @@ def stiffness_bound(x, problem, params, ref):
     per_tri = lam + jnp.abs(params.pressure) * emax / 3.0
     bound = _scatter_nodes(jnp.broadcast_to(per_tri[:, None], tri.shape), tri, problem.n_nodes)
     c = params.contact
-    if c is not None and hasattr(c, "stiffness_bound"):
-        bound = bound + c.stiffness_bound(ref.node_area)
+    if c is not None and hasattr(c, "energy"):
+        # penalty stiffness k a_i on the node and its reaction on the opposing triangle
+        bound = bound + 2.0 * c.stiffness * ref.node_area
+    elif c is not None:
+        # the paper's law: slope k2 from each of the ~6 triangles in a node's vicinity
+        bound = bound + 12.0 * c.k2
     return bound

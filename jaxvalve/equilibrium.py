@@ -19,15 +19,28 @@ from .errors import ConvergenceError, ParameterError
 from .problem import Params, Problem, validate_params
 from .solvers import RESULTS, EquilibriumSystem, FixedPoint, NewtonKrylov, Solution, Stats, iterate
 from .solvers.base import relative_residual
+from . import contact as _contact
+
+DEFAULT_SKIN = 1.0  # mm: pair lists are rebuilt once a node has moved skin / 2
 
 
-def _contact_of(params):
-    return params.contact
+def contact_cutoff(contact, x, triangles, skin=DEFAULT_SKIN):
+    """Broad-phase radius (mm): interaction range of the law plus the skin."""
+    if hasattr(contact, "energy"):
+        return float(contact.gap) + skin
+    return 1.25 * float(_contact.vicinity_threshold(x, triangles)) + skin
+
+
+def init_pairs(contact, problem, x, skin=DEFAULT_SKIN, capacity=None):
+    """Contact pair list for state x, grown outside jit until nothing overflows."""
+    cutoff = contact_cutoff(contact, jnp.asarray(x), problem.triangles, skin)
+    return _contact.build_neighbours_checked(x, problem.triangles, problem.body, cutoff,
+                                             capacity=capacity)
 
 
 def make_system(problem: Problem, params: Params) -> EquilibriumSystem:
     """The functions a solver needs, with ``args = dict(params, ref, nbrs, delta, f0)``."""
-    contact = _contact_of(params)
+    contact = params.contact
 
     def force(y, a):
         return assembly.residual(y, problem, a["params"], a["ref"], a["nbrs"], a["delta"])
@@ -48,7 +61,8 @@ def make_system(problem: Problem, params: Params) -> EquilibriumSystem:
     def update(y, a):
         if contact is None:
             return a
-        return dict(a, nbrs=contact.update_pairs(a["nbrs"], y, problem))
+        return dict(a, nbrs=_contact.update(a["nbrs"], y, problem.triangles, problem.body,
+                                            a["skin"]))
 
     def overflow(a):
         if contact is None:
@@ -62,10 +76,12 @@ def make_system(problem: Problem, params: Params) -> EquilibriumSystem:
                              laplacian, problem.free)
 
 
-def _make_args(problem, params, x0, nbrs, solver):
+def _make_args(problem, params, x0, nbrs, solver, skin):
     ref = assembly.prepare(problem, params)
+    has_contact = params.contact is not None
     a = dict(params=params, ref=ref, nbrs=nbrs, delta=jnp.asarray(0.0, x0.dtype),
-             f0=jnp.asarray(1.0, x0.dtype))
+             f0=jnp.asarray(1.0, x0.dtype), skin=jnp.asarray(skin, x0.dtype),
+             max_move=jnp.asarray(0.5 * skin if has_contact else jnp.inf, x0.dtype))
     system = make_system(problem, params)
     a = system.update(x0, a)
     if params.contact is not None and hasattr(params.contact, "force"):
@@ -78,8 +94,8 @@ def _make_args(problem, params, x0, nbrs, solver):
     return system, a
 
 
-def _run(solver, problem, params, x0, nbrs):
-    system, args = _make_args(problem, params, x0, nbrs, solver)
+def _run(solver, problem, params, x0, nbrs, skin):
+    system, args = _make_args(problem, params, x0, nbrs, solver, skin)
     steps = evals = hvps = jnp.asarray(0)
     y = x0
     for warm in getattr(solver, "warm_start", None) or ():
@@ -115,19 +131,19 @@ def _adjoint_solve(problem, params, x, nbrs, delta, g, tol=1e-12, maxiter=2000):
     return mu, vjp
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
-def _equilibrium(solver, problem, params, x0, nbrs):
-    y, result, stats, args = _run(solver, problem, params, x0, nbrs)
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0, 5))
+def _equilibrium(solver, problem, params, x0, nbrs, skin):
+    y, result, stats, args = _run(solver, problem, params, x0, nbrs, skin)
     return y, result, stats, args["nbrs"], args["delta"]
 
 
-def _eq_fwd(solver, problem, params, x0, nbrs):
-    out = _equilibrium(solver, problem, params, x0, nbrs)
+def _eq_fwd(solver, problem, params, x0, nbrs, skin):
+    out = _equilibrium(solver, problem, params, x0, nbrs, skin)
     y, _, _, nb, delta = out
     return out, (problem, params, y, nb, delta)
 
 
-def _eq_bwd(solver, res, cts):
+def _eq_bwd(solver, skin, res, cts):
     problem, params, y, nb, delta = res
     g = cts[0]
     mu, vjp = _adjoint_solve(problem, params, y, nb, delta, g)
@@ -143,9 +159,9 @@ def _eq_bwd(solver, res, cts):
 _equilibrium.defvjp(_eq_fwd, _eq_bwd)
 
 
-@functools.partial(jax.jit, static_argnums=(0,))
-def _solve_jit(solver, problem, params, x0, nbrs):
-    return _equilibrium(solver, problem, params, x0, nbrs)
+@functools.partial(jax.jit, static_argnums=(0, 5))
+def _solve_jit(solver, problem, params, x0, nbrs, skin):
+    return _equilibrium(solver, problem, params, x0, nbrs, skin)
 
 
 def _raise_host(code, residual, steps):
@@ -157,12 +173,15 @@ def _raise_host(code, residual, steps):
 
 
 def solve(problem: Problem, params: Params, x0, solver=None, *, throw: bool = True,
-          nbrs=None) -> Solution:
+          nbrs=None, skin: float = DEFAULT_SKIN) -> Solution:
     """Equilibrium of ``problem`` under ``params`` from the start x0 (N, 3) mm.
 
     solver: `NewtonKrylov()` (default), `FIRE()` or `FixedPoint()` (Algorithm 2.1).
     throw: raise `ConvergenceError` (with the residual) unless the solve converged; with
-    throw=False the caller must inspect ``solution.result``.  Differentiable in reverse
+    throw=False the caller must inspect ``solution.result``.
+    nbrs, skin: contact pair list (built here when None) and its skin (mm).  A pair list
+    that overflows inside the solve is rebuilt here at a larger capacity and the solve
+    is repeated.  Differentiable in reverse
     mode with respect to params and the fixed positions in x0 (implicit adjoint).
     """
     solver = NewtonKrylov() if solver is None else solver
@@ -175,8 +194,13 @@ def solve(problem: Problem, params: Params, x0, solver=None, *, throw: bool = Tr
     # strong float64 leaves: a Python float and an array then share one compiled solve
     params = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype=x0.dtype), params)
     if params.contact is not None and nbrs is None:
-        nbrs = params.contact.init_pairs(x0, problem)
-    y, result, stats, nb, _ = _solve_jit(solver, problem, params, x0, nbrs)
+        nbrs = init_pairs(params.contact, problem, x0, skin)
+    for _ in range(6):
+        y, result, stats, nb, _ = _solve_jit(solver, problem, params, x0, nbrs, float(skin))
+        if isinstance(result, jax.core.Tracer) or int(result) != RESULTS.neighbour_overflow:
+            break
+        nbrs = init_pairs(params.contact, problem, x0, skin, capacity=2 * max(
+            nbrs.capacity, int(nb.count)))
     sol = Solution(x=y, result=result, stats=stats, nbrs=nb)
     if throw:
         if isinstance(result, jax.core.Tracer):

@@ -50,7 +50,7 @@ def combine(*sheets):
     return np.concatenate(xs), np.concatenate(ts).astype(np.int32), np.concatenate(bs)
 
 
-def crumpled_bodies(rng, nb=2, n=8, L=4.0):
+def crumpled_bodies(rng, nb=2, n=7, L=3.5):
     sheets = []
     for k in range(nb):
         p, t = grid_sheet(n, L, z=0.15 * k, jitter=0.2, rng=rng)
@@ -103,19 +103,21 @@ def _scipy_distance(p, a, b, c):
     return np.sqrt(res.fun)
 
 
+_dist_grad = jax.jit(jax.grad(lambda *v: point_triangle_distance(*v)[0], argnums=(0, 1, 2, 3)))
+
+
 @pytest.mark.parametrize("region", ["face", "A", "B", "C", "AB", "BC", "AC"])
 def test_point_triangle_distance_all_regions(region):
     p = _region_points()[region]
     a, b, c = TRI
-    d, q, bary = point_triangle_distance(*map(jnp.asarray, (p, a, b, c)))
+    d, q, bary = jax.jit(point_triangle_distance)(*map(jnp.asarray, (p, a, b, c)))
     assert abs(float(d) - _scipy_distance(p, a, b, c)) < 1e-6
     assert np.allclose(q, bary @ TRI) and abs(float(jnp.sum(bary)) - 1) < 1e-12
     zero = {"face": 0, "A": 2, "B": 2, "C": 2, "AB": 1, "BC": 1, "AC": 1}[region]
     assert int(np.sum(np.asarray(bary) == 0)) == zero
     assert abs(point_triangle_distance_np(p[None], a[None], b[None], c[None])[0] - d) < 1e-12
     # gradient equals central finite differences w.r.t. all 12 coordinates
-    args = [jnp.asarray(v) for v in (p, a, b, c)]
-    grads = jax.grad(lambda *v: point_triangle_distance(*v)[0], argnums=(0, 1, 2, 3))(*args)
+    grads = _dist_grad(*[jnp.asarray(v) for v in (p, a, b, c)])
     h = 1e-6
     for k in range(4):
         for j in range(3):
@@ -143,14 +145,13 @@ def test_gradient_finite_at_zero_distance_and_degenerate():
     a, b, c = map(jnp.asarray, TRI)
     on = (a + b + c) / 3
     for p in (on, a, 0.5 * (a + b)):
-        g = jax.grad(lambda p, a, b, c: point_triangle_distance(p, a, b, c)[0],
-                     argnums=(0, 1, 2, 3))(p, a, b, c)
+        g = _dist_grad(p, a, b, c)
         assert float(point_triangle_distance(p, a, b, c)[0]) < 1e-14
         assert all(bool(jnp.all(jnp.isfinite(gi))) for gi in g)
     # degenerate (collinear) triangle: finite value and gradient
     p = jnp.array([0.3, 1.0, 0.2])
     cd = jnp.array([1.0, 0.1, 0.05])
-    g = jax.grad(lambda p: point_triangle_distance(p, a, 0.5 * cd, cd)[0])(p)
+    g = _dist_grad(p, a, 0.5 * cd, cd)[0]
     assert bool(jnp.all(jnp.isfinite(g)))
 
 
@@ -164,13 +165,22 @@ def test_signed_plane_distance():
 
 
 # ------------------------------------------------------------------------ broad phase
+# The tests reuse a few static shapes (meshes, capacities) so that jit compiles stay few.
+CAP, CELL = 8192, 64
+
+
+def _build(x, tri, body, cutoff):
+    nbrs = build_neighbours(x, tri, body, cutoff, capacity=CAP, cell_capacity=CELL)
+    assert not bool(nbrs.overflow)
+    return nbrs
+
+
 @pytest.mark.parametrize("nbody", [2, 3])
 def test_broad_phase_superset_of_brute_force(nbody):
     rng = np.random.default_rng(nbody)
     x, tri, body = crumpled_bodies(rng, nb=nbody)
     cutoff = 0.35
-    nbrs = build_neighbours(x, tri, body, cutoff, capacity=8192)
-    assert not bool(nbrs.overflow)
+    nbrs = _build(x, tri, body, cutoff)
     cand = pair_set(nbrs)
     assert len(cand) == int(nbrs.count) == len(set(cand))            # no duplicates
     cand = set(cand)
@@ -184,114 +194,166 @@ def test_broad_phase_superset_of_brute_force(nbody):
     assert np.all(np.linalg.norm(x[i] - cen[t], axis=1) < cutoff + R[t] + 1e-12)
     n_other = sum(np.sum(body != body[tri[k, 0]]) for k in range(len(tri)))
     assert len(cand) < 0.5 * n_other
+    # rows are grouped by (node, body of triangle), groups numbered consecutively
+    g = np.asarray(nbrs.group)[np.asarray(nbrs.valid)]
+    key = [(a, body[tri[b, 0]]) for a, b in pair_set(nbrs)]
+    assert np.all(np.diff(g) >= 0) and len(set(key)) == g[-1] + 1
+    assert all(len({key[k] for k in np.where(g == gi)[0]}) == 1 for gi in set(g.tolist()))
 
 
 def test_overflow_flag_and_checked_builder():
-    x, tri, body = crumpled_bodies(np.random.default_rng(5))
+    x, tri, body = crumpled_bodies(np.random.default_rng(2))
     cutoff = 0.35
-    small = build_neighbours(x, tri, body, cutoff, capacity=64)
-    assert bool(small.overflow) and int(small.count) > 64
-    with pytest.raises(NeighbourListOverflow, match=rf"capacity=64.*{int(small.count)}"):
+    small = build_neighbours(x, tri, body, cutoff, capacity=64, cell_capacity=2)
+    assert bool(small.overflow) and int(small.count) > 64 and int(small.max_cell_count) > 2
+    assert int(small.valid.sum()) == 64                          # full, and flagged
+    with pytest.raises(NeighbourListOverflow,
+                       match=rf"capacity=64 .*{int(small.count)}.*cell_capacity=2 "):
         check_overflow(small)
-    cell = build_neighbours(x, tri, body, cutoff, capacity=8192, cell_capacity=2)
-    assert bool(cell.overflow) and int(cell.max_cell_count) > 2
-    with pytest.raises(NeighbourListOverflow, match="cell_capacity=2"):
-        check_overflow(cell)
     ok = build_neighbours_checked(x, tri, body, cutoff, capacity=64, cell_capacity=2)
-    assert not bool(ok.overflow) and ok.capacity >= int(small.count)
+    assert not bool(ok.overflow) and ok.capacity >= int(ok.count)
+    assert ok.cell_capacity >= int(ok.max_cell_count)
     check_overflow(ok)
-    assert set(pair_set(ok)) == set(pair_set(build_neighbours(x, tri, body, cutoff, 8192)))
+    assert brute_force_pairs(x, tri, body, cutoff) <= set(pair_set(ok))
+    assert set(pair_set(ok)) == set(pair_set(_build(x, tri, body, cutoff)))
     assert default_capacity(len(x)) >= 8 * len(x)
+    with pytest.raises(NeighbourListOverflow, match="capacity"):
+        build_neighbours_checked(x, tri, body, cutoff, capacity=64, cell_capacity=2,
+                                 max_tries=1)
+    with pytest.raises(ParameterError, match="cutoff"):
+        build_neighbours_checked(x, tri, body, -1.0)
 
 
 def test_update_inside_while_loop():
-    x, tri, body = crumpled_bodies(np.random.default_rng(7))
+    x, tri, body = crumpled_bodies(np.random.default_rng(2))
     skin = 0.2
-    nbrs = build_neighbours(x, tri, body, 0.2 + skin, capacity=8192)
+    nbrs = _build(x, tri, body, 0.15 + skin)
     x = jnp.asarray(x)
-    drift = jnp.zeros_like(x).at[body == 1, 2].set(-1.0)   # body 1 sinks 0.03 mm a step
+    drift = jnp.zeros_like(x).at[body == 1, 2].set(-1.0)   # body 1 sinks 0.012 mm a step
 
     def body_fn(state):
         k, xk, nb, nrebuild = state
-        xk = xk + 0.03 * drift
+        xk = xk + 0.012 * drift
         new = update(nb, xk, tri, body, skin)
         changed = jnp.any(new.x_build != nb.x_build)
         return k + 1, xk, new, nrebuild + changed
 
-    k, xf, nbf, nreb = jax.jit(lambda s: jax.lax.while_loop(lambda s: s[0] < 22, body_fn, s))(
+    k, xf, nbf, nreb = jax.jit(lambda s: jax.lax.while_loop(lambda s: s[0] < 20, body_fn, s))(
         (jnp.int32(0), x, nbrs, jnp.int32(0)))
-    assert int(nreb) == 5                      # rebuilt at steps 4, 8, 12, 16, 20
-    assert not bool(needs_rebuild(nbf, xf, skin))
-    fresh = build_neighbours(xf, tri, body, 0.2 + skin, capacity=8192)
-    ref = brute_force_pairs(np.asarray(xf), tri, body, 0.2)
-    assert ref <= set(pair_set(nbf))
-    assert set(pair_set(nbf)) == set(pair_set(build_neighbours(nbf.x_build, tri, body,
-                                                               0.2 + skin, 8192)))
-    assert ref <= set(pair_set(fresh))
+    assert int(nreb) == 2                      # rebuilt at steps 9 and 18 (> skin / 2)
+    assert not bool(needs_rebuild(nbf, xf, skin)) and not bool(nbf.overflow)
+    assert np.allclose(nbf.x_build, x + 18 * 0.012 * drift)
+    ref = brute_force_pairs(np.asarray(xf), tri, body, 0.15)   # 2 steps after the rebuild
+    assert len(ref) > 50 and ref <= set(pair_set(nbf))
+    assert brute_force_pairs(np.asarray(nbf.x_build), tri, body, 0.15 + skin) <= set(pair_set(nbf))
 
 
 # ------------------------------------------------------------------------ smooth law
 _energy = jax.jit(lambda c, x, tri, nbrs, area: c.energy(x, tri, nbrs, area))
 _forces = jax.jit(lambda c, x, tri, nbrs, area: c.forces(x, tri, nbrs, area))
 
+REFINE = ((4, 4), (8, 8), (5, 7), (7, 10))   # (lower, upper) cells across 2 mm
 
-def _setup(x, tri, body, cutoff=0.45, cap=8192):
-    nbrs = build_neighbours_checked(x, tri, body, cutoff, capacity=cap)
-    assert not bool(nbrs.overflow)
+
+def _setup(x, tri, body, cutoff=0.3):
+    nbrs = _build(x, tri, body, cutoff)
     return jnp.asarray(x), jnp.asarray(tri), nbrs, node_areas(jnp.asarray(x), jnp.asarray(tri))
+
+
+def _tiles(d, z_node=0.5, spacing=10.0):
+    """Independent (lower, upper) pairs of 2 x 2 mm sheets side by side (bodies 2k, 2k+1;
+    upper at height d), then a 2 x 2 mm sheet with a lone node (last) above it at z_node:
+    one compiled evaluation covers several mesh resolutions and the single-node tests."""
+    sheets = []
+    for k, (n_lo, n_up) in enumerate(REFINE):
+        sheets.append(grid_sheet(n_lo, 2.0, origin=(spacing * k, 0.0)))
+        sheets.append(grid_sheet(n_up, 2.0, z=d, origin=(spacing * k, 0.0)))
+    x0 = spacing * len(REFINE)
+    sheets.append(grid_sheet(4, 2.0, origin=(x0, 0.0)))
+    sheets.append((np.array([[x0 + 0.7, 0.9, z_node]]), np.zeros((0, 3), np.int32)))
+    return _setup(*combine(*sheets))
 
 
 def test_smooth_zero_beyond_gap():
     c = SmoothContact()
-    x, tri, body = combine(grid_sheet(4, 2.0), grid_sheet(3, 2.0, z=0.2001))
-    x, tri, nbrs, area = _setup(x, tri, body)
+    x, tri, nbrs, area = _tiles(0.2001, 0.2001)
     assert int(nbrs.count) > 0
     assert float(_energy(c, x, tri, nbrs, area)) == 0.0
     assert float(jnp.max(jnp.abs(_forces(c, x, tri, nbrs, area)))) == 0.0
 
 
+@pytest.mark.parametrize("d", [0.05, 0.12])
+def test_smooth_pressure_independent_of_refinement(d):
+    """Two overlapping 2 x 2 mm sheets at distance d.  The resultant is k (g0 - d) L^2
+    exactly for any (non-matching) meshes; with matching meshes every node feels exactly
+    a_i k (g0 - d); with non-matching meshes the interior nodal pressure is that on
+    average (the reaction half is lumped onto the triangle vertices)."""
+    c = SmoothContact(stiffness=1.3, gap=0.2)
+    p_exact = 1.3 * (0.2 - d)
+    x, tri, nbrs, area = _tiles(d)
+    body = np.asarray(_body_of(x))
+    F = np.asarray(_forces(c, x, tri, nbrs, area))
+    assert np.max(np.abs(F[:, :2])) < 1e-12
+    for k, (n_lo, n_up) in enumerate(REFINE):
+        lo, up = body == 2 * k, body == 2 * k + 1
+        assert abs(F[up, 2].sum() / 4.0 - p_exact) < 1e-10
+        assert abs(F[lo, 2].sum() / 4.0 + p_exact) < 1e-10
+        p_node = F[up, 2] / np.asarray(area)[up]
+        if n_lo == n_up:
+            assert np.allclose(p_node, p_exact, rtol=1e-10)
+        else:
+            xy = np.asarray(x)[up, :2] - [10.0 * k + 1.0, 1.0]
+            inner = np.all(np.abs(xy) < 0.7, axis=1)
+            assert abs(np.mean(p_node[inner]) / p_exact - 1) < 0.05
+
+
+def _body_of(x):
+    """Body ids of the `_tiles` mesh, recomputed from the sheet sizes."""
+    sizes = [(n + 1) ** 2 for pair in REFINE for n in pair] + [25, 1]
+    return np.repeat(np.arange(len(sizes)), sizes)
+
+
 def test_smooth_continuity_across_gap():
-    """Value and slope -> 0 from both sides of d = g0 (one-sided differences)."""
+    """Value and slope -> 0 from both sides of d = g0 (one-sided differences); a lone node
+    of area 1 over a sheet feels (1/2) k (g0 - d) (the other half of the pair pressure
+    comes from the sheet's nodes, absent here)."""
     c = SmoothContact(stiffness=1.0, gap=0.2)
-    p0, t0 = grid_sheet(2, 2.0)
-    x, tri, body = combine((p0, t0), (np.array([[0.7, 0.9, 0.2]]), np.zeros((0, 3), np.int32)))
-    x, tri, nbrs, area = _setup(x, tri, body)
+    x, tri, nbrs, area = _tiles(0.05, 0.2)
     area = area.at[-1].set(1.0)
-    E = jax.jit(lambda z: c.energy(x.at[-1, 2].set(z), tri, nbrs, area))
-    dE = jax.jit(jax.grad(lambda z: c.energy(x.at[-1, 2].set(z), tri, nbrs, area)))
+    e0 = float(_energy(c, x.at[-1, 2].set(1.0), tri, nbrs, area))        # sheets only
+    E = lambda z: float(_energy(c, x.at[-1, 2].set(z), tri, nbrs, area)) - e0  # noqa: E731
+    dE = lambda z: float(_forces(c, x.at[-1, 2].set(z), tri, nbrs, area)[-1, 2])  # noqa: E731
     g0 = 0.2
-    assert float(E(g0)) == 0.0 and float(dE(g0)) == 0.0
+    assert E(g0) == 0.0 and dE(g0) == 0.0
     for h in (1e-2, 1e-3, 1e-4):
-        left = (float(E(g0)) - float(E(g0 - h))) / h
-        right = (float(E(g0 + h)) - float(E(g0))) / h
-        assert right == 0.0 and abs(left) <= 0.5 * 1.0 * h     # |slope| = a k h / 4 -> 0
-        assert abs(float(dE(g0 - h)) - (-0.5 * 1.0 * h)) < 1e-12   # -(1/2) a k (g0 - d)
+        left = (E(g0) - E(g0 - h)) / h
+        right = (E(g0 + h) - E(g0)) / h
+        assert right == 0.0 and abs(left) <= 0.5 * 1.0 * h     # |slope| = k h / 4 -> 0
+        assert abs(dE(g0 - h) - 0.5 * 1.0 * h) < 1e-12         # force (1/2) a k (g0 - d)
 
 
-def test_smooth_check_grads_and_force_consistency():
-    x, tri, body = crumpled_bodies(np.random.default_rng(11))
-    x, tri, nbrs, area = _setup(x, tri, body)
-    c = SmoothContact(stiffness=2.0, gap=0.2)
-    f = lambda x: c.energy(x, tri, nbrs, area)  # noqa: E731
-    assert float(f(x)) > 0
-    check_grads(f, (x,), order=1, modes=("fwd", "rev"), eps=1e-6, atol=1e-6, rtol=1e-6)
-    # gradients w.r.t. the traced parameters as well
-    g = lambda k, g0: SmoothContact(k, g0).energy(x, tri, nbrs, area)  # noqa: E731
-    check_grads(g, (2.0, 0.2), order=1, modes=("rev",), eps=1e-6)
-    F = _forces(c, x, tri, nbrs, area)
-    v = jnp.asarray(np.random.default_rng(1).normal(size=x.shape))
-    h = 1e-6
-    fd = (f(x + h * v) - f(x - h * v)) / (2 * h)
-    assert abs(float(fd + jnp.sum(F * v))) < 1e-6 * max(1.0, float(jnp.abs(fd)))
-
-
-def test_smooth_newton_third_law_and_rigid_invariance():
-    x, tri, body = crumpled_bodies(np.random.default_rng(13), nb=3)
-    x, tri, nbrs, area = _setup(x, tri, body)
+def test_smooth_gradient_finite_when_touching():
     c = SmoothContact()
-    E = _energy(c, x, tri, nbrs, area)
+    x, tri, nbrs, area = _tiles(0.25, 0.0)                   # node lies on the sheet
+    area = area.at[-1].set(1.0)
+    F = _forces(c, x, tri, nbrs, area)
+    assert bool(jnp.all(jnp.isfinite(F)))
+    assert float(_energy(c, x, tri, nbrs, area)) == pytest.approx(0.5 * 0.5 * 0.04)
+
+
+def test_smooth_check_grads_newton_third_law_rigid_invariance():
+    x, tri, body = crumpled_bodies(np.random.default_rng(3), nb=3)
+    x, tri, nbrs, area = _setup(x, tri, body, cutoff=0.45)
+    c = SmoothContact(stiffness=2.0, gap=0.2)
+    f = lambda x: _energy(c, x, tri, nbrs, area)  # noqa: E731
+    E = f(x)
     F = _forces(c, x, tri, nbrs, area)
     assert float(E) > 0 and float(jnp.max(jnp.abs(F))) > 1e-3
+    check_grads(f, (x,), order=1, modes=("rev",), eps=1e-6, atol=1e-6, rtol=1e-6)
+    v = jnp.asarray(np.random.default_rng(1).normal(size=x.shape))
+    h = 1e-6
+    fd = (f(x + h * v) - f(x - h * v)) / (2 * h)                     # energy-force consistency
+    assert abs(float(fd + jnp.sum(F * v))) < 1e-6 * max(1.0, float(jnp.abs(fd)))
     scale = float(jnp.sum(jnp.abs(F)))
     assert float(jnp.max(jnp.abs(F.sum(0)))) < 1e-12 * scale           # zero net force
     assert float(jnp.max(jnp.abs(jnp.cross(x, F).sum(0)))) < 1e-11 * scale  # zero torque
@@ -299,74 +361,50 @@ def test_smooth_newton_third_law_and_rigid_invariance():
     R = jnp.array([[np.cos(th), -np.sin(th), 0], [np.sin(th), np.cos(th), 0], [0, 0, 1.0]])
     R = R @ jnp.array([[1.0, 0, 0], [0, np.cos(1.1), -np.sin(1.1)], [0, np.sin(1.1), np.cos(1.1)]])
     y = x @ R.T + jnp.array([3.0, -2.0, 7.5])
-    nb_y = build_neighbours(y, tri, body, 0.45, capacity=8192)
+    nb_y = _build(y, tri, body, 0.45)
     assert set(pair_set(nb_y)) == set(pair_set(nbrs))
     assert abs(float(_energy(c, y, tri, nb_y, area) - E)) < 1e-12 * float(E)
     assert np.allclose(_forces(c, y, tri, nb_y, area), F @ R.T, atol=1e-12)
 
 
-@pytest.mark.parametrize("d", [0.05, 0.12])
-def test_smooth_pressure_independent_of_refinement(d):
-    """Two overlapping L x L sheets at distance d.  The resultant is k (g0 - d) L^2
-    exactly for any (non-matching) meshes; with matching meshes every node feels exactly
-    a_i k (g0 - d); with non-matching meshes the interior nodal pressure is that on
-    average (the reaction half is lumped onto the triangle vertices)."""
-    c = SmoothContact(stiffness=1.3, gap=0.2)
-    L = 2.0
-    p_exact = 1.3 * (0.2 - d)
-    for n_lo, n_up in ((3, 3), (6, 6), (12, 12), (3, 4), (7, 5), (12, 17)):
-        up, t_up = grid_sheet(n_up, L, z=d)
-        x, tri, body = combine(grid_sheet(n_lo, L), (up, t_up))
-        x, tri, nbrs, area = _setup(x, tri, body)
-        F = _forces(c, x, tri, nbrs, area)
-        upper = body == 1
-        assert abs(float(F[upper, 2].sum()) / L**2 - p_exact) < 1e-10
-        assert abs(float(F[~upper, 2].sum()) / L**2 + p_exact) < 1e-10
-        assert float(jnp.max(jnp.abs(F[:, :2]))) < 1e-12
-        p_node = np.asarray(F[upper, 2] / area[upper])
-        if n_lo == n_up:
-            assert np.allclose(p_node, p_exact, rtol=1e-10)
-        else:
-            inner = np.all(np.abs(np.asarray(x)[upper, :2] - L / 2) < L / 2 - 0.3, axis=1)
-            assert abs(np.mean(p_node[inner]) / p_exact - 1) < 0.05
+@jax.jit
+def _relax_under_pressure(c, P, x0, tri, nbrs, area, upper):
+    """Upper-sheet nodes slide in z under the load -P a_i e_z + contact (Jacobi-damped
+    fixed point, step 0.5 / (k a_i))."""
+    f_ext = jnp.where(upper, -P * area, 0.0)
+    step = jnp.where(upper, 0.5 / (c.stiffness * jnp.where(upper, area, 1.0)), 0.0)
+
+    def it(_, x):
+        F = c.forces(x, tri, nbrs, area)[:, 2] + f_ext
+        return x.at[:, 2].add(step * F)
+
+    return jax.lax.fori_loop(0, 300, it, x0)
 
 
 @pytest.mark.parametrize("mmhg", [80.0, 800.0])
 def test_smooth_sheets_do_not_pass_through_under_pressure(mmhg):
-    """Upper sheet pushed onto a fixed lower sheet by a pressure load, relaxed to
-    equilibrium: it settles at d = g0 - P/k > 0, never crossing the lower sheet."""
+    """Upper sheets pushed onto fixed lower sheets by a pressure load, relaxed to
+    equilibrium: they settle near d = g0 - P/k > 0 and never cross the lower sheet."""
     c = SmoothContact()
     P = mmhg * MMHG
-    lo, t_lo = grid_sheet(8, 2.0, origin=(-0.5, -0.5), flip=True)
-    up, t_up = grid_sheet(5, 1.0, z=0.25)
-    x0, tri, body = combine((lo, t_lo), (up, t_up))
-    x0, tri, nbrs, area = _setup(x0, tri, body, cutoff=0.5)
-    upper = jnp.asarray(body == 1)
-    f_ext = jnp.zeros_like(x0).at[:, 2].set(jnp.where(upper, -P * area, 0.0))
-    step = 0.5 / (c.stiffness * float(jnp.max(area)))
-
-    def it(_, x):
-        F = c.forces(x, tri, nbrs, area) + f_ext
-        return x.at[:, 2].add(step * jnp.where(upper, F[:, 2], 0.0))   # nodes slide in z
-
-    x = jax.jit(lambda x: jax.lax.fori_loop(0, 600, it, x))(x0)
-    z = np.asarray(x[upper, 2])
+    x0, tri, nbrs, area = _tiles(0.25)
+    body = _body_of(x0)
+    upper = jnp.asarray((body % 2 == 1) & (body < 2 * len(REFINE)))
+    x = _relax_under_pressure(c, P, x0, tri, nbrs, area, upper)
     d_eq = 0.2 - P / c.stiffness
-    inner = np.all(np.abs(np.asarray(x0)[upper, :2] - 0.5) < 0.3, axis=1)
-    assert np.all(z > 0.5 * d_eq)                       # no node crosses or nears d = 0
-    assert 0.2 - z.min() < 1.3 * P / c.stiffness        # penetration ~ P/k (5 % of g0)
-    assert abs(np.mean(z[inner]) - d_eq) < 0.1 * P / c.stiffness
+    F = _forces(c, x, tri, nbrs, area)
+    for k, (n_lo, n_up) in enumerate(REFINE):
+        up = body == 2 * k + 1
+        z = np.asarray(x[up, 2])
+        assert np.all(z > 0.5 * d_eq)                       # no node crosses or nears d = 0
+        # nodes here have no membrane stiffness, so the lumped reaction on non-matching
+        # meshes spreads them around d_eq; still none gets near the other sheet
+        assert 0.2 - z.min() < 2.0 * P / c.stiffness        # penetration ~ P/k (5 % of g0)
+        if n_lo == n_up:
+            assert np.allclose(z, d_eq, atol=1e-6 * P / c.stiffness)
+        assert float(jnp.sum(F[up, 2])) == pytest.approx(P * 4.0, rel=1e-4)   # equilibrium
     if mmhg == 80.0:
-        assert (0.2 - z.min()) / 0.2 < 0.06            # penetration into layer ~5 % of g0
-    assert not bool(needs_rebuild(nbrs, x, 0.3))
-
-
-def test_smooth_gradient_finite_when_touching():
-    p, t = grid_sheet(2, 2.0)
-    x, tri, body = combine((p, t), (np.array([[0.7, 0.9, 0.0]]), np.zeros((0, 3), np.int32)))
-    x, tri, nbrs, area = _setup(x, tri, body)
-    F = SmoothContact().forces(x, tri, nbrs, area)
-    assert bool(jnp.all(jnp.isfinite(F)))
+        assert (0.2 - float(jnp.min(jnp.where(upper, x[:, 2], 1.0)))) / 0.2 < 0.1
 
 
 @pytest.mark.parametrize("kw,name", [({"stiffness": 0.0}, "stiffness"),
@@ -379,22 +417,30 @@ def test_smooth_validate(kw, name):
 
 
 # ------------------------------------------------------------------------ paper law
+_paper = jax.jit(lambda law, x, F, delta, tri, nbrs: law.force(x, F, delta, tri, nbrs))
+
+
 def paper_reference_np(x, F_nc, delta, tri, body, k1=8e-4, k2=0.02, d_pi=0.7):
     """Direct transcription of eq. (2.2) with loops (all node / triangle pairs)."""
     x = np.asarray(x)
     rT = x[tri].mean(1)
     d = 1.1 * np.mean([max(np.linalg.norm(rT[t] - x[k]) for k in tri[t]) for t in range(len(tri))])
     out = np.zeros_like(x)
+    br = paper_reference_np.branches = {"far": 0, "above_threshold": 0, "pos": 0, "neg": 0}
     for i in range(len(x)):
         Fi = F_nc[i]
         Fn = np.linalg.norm(Fi)
         for t in range(len(tri)):
-            if body[tri[t, 0]] == body[i] or np.linalg.norm(x[i] - rT[t]) >= d:
+            if body[tri[t, 0]] == body[i]:
+                continue
+            if np.linalg.norm(x[i] - rT[t]) >= d:
+                br["far"] += 1
                 continue
             a, b, c = x[tri[t]]
             n = np.cross(b - a, c - a)
             n /= np.linalg.norm(n)
             dpi = (x[i] + delta * Fi - rT[t]) @ n
+            br["above_threshold" if dpi >= d_pi else "pos" if dpi > 0 else "neg"] += 1
             if dpi < d_pi:
                 out[i] += (Fn * np.exp(-k1 * dpi / Fn) if dpi > 0 else Fn - k2 * dpi) * n
     return out
@@ -410,14 +456,12 @@ def test_paper_matches_numpy_transcription():
     delta = 20.0
     law = PaperContact().validate()
     d = float(vicinity_threshold(jnp.asarray(x), jnp.asarray(tri)))
-    nbrs = build_neighbours(x, tri, body, 1.25 * d, capacity=4096)
-    assert not bool(nbrs.overflow)
-    F = law.force(jnp.asarray(x), jnp.asarray(F_nc), delta, jnp.asarray(tri), nbrs)
+    nbrs = _build(x, tri, body, 1.25 * d)
+    F = _paper(law, jnp.asarray(x), jnp.asarray(F_nc), delta, jnp.asarray(tri), nbrs)
     ref = paper_reference_np(x, F_nc, delta, tri, body)
     assert np.count_nonzero(np.linalg.norm(ref, axis=1)) > 10
-    # both branches (d_pi > 0 and <= 0) and the threshold are exercised
-    pf = law.pair_forces(jnp.asarray(x), jnp.asarray(F_nc), delta, jnp.asarray(tri), nbrs)
-    assert int(jnp.sum(jnp.any(pf != 0, axis=1))) < int(nbrs.count)
+    # both branches (d_pi > 0 and <= 0), the threshold and the vicinity are exercised
+    assert all(v > 0 for v in paper_reference_np.branches.values())
     assert np.allclose(F, ref, rtol=1e-12, atol=1e-15)
 
 
@@ -433,7 +477,8 @@ def test_paper_threshold_direction_and_zero_force_guard():
         nb = build_neighbours(x, tri, body, 3.0, capacity=8)
         F_nc = np.zeros((4, 3))
         F_nc[3] = Fnc
-        return np.asarray(law.force(jnp.asarray(x), jnp.asarray(F_nc), delta, jnp.asarray(tri), nb))
+        return np.asarray(_paper(law, jnp.asarray(x), jnp.asarray(F_nc), delta,
+                                 jnp.asarray(tri), nb))
 
     Fv = np.array([0.003, -0.004, 0.0])                    # |F| = 0.005 N
     assert np.all(f(0.71, Fv) == 0)                         # beyond d_pi = 0.7 mm
@@ -445,6 +490,14 @@ def test_paper_threshold_direction_and_zero_force_guard():
         assert abs(F[3, 2] - mag) < 1e-15
     # the tentative position r~ = x + delta F moves the node across the threshold
     assert np.all(f(0.69, [0, 0, 0.005], delta=10.0) == 0)
+    # outside the d-vicinity of the barycentre: no force even below d_pi
+    x = np.vstack([a, rT + [0.0, 0.0, 2.6]])
+    nb = build_neighbours(x, tri, body, 3.0, capacity=8)
+    assert int(nb.count) == 1
+    F_nc = np.zeros((4, 3))
+    F_nc[3] = [0, 0, -0.01]
+    assert np.all(np.asarray(_paper(law, jnp.asarray(x), jnp.asarray(F_nc), 250.0,
+                                    jnp.asarray(tri), nb)) == 0)
     # |F_i| = 0: no NaN; zero above the plane, -k2 d_pi below it
     assert np.all(f(0.3, [0, 0, 0]) == 0)
     F = f(-0.2, [0, 0, 0])

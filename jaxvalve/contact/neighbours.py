@@ -230,11 +230,16 @@ def check_overflow(nbrs: NeighbourList) -> None:
                                 + " (or use build_neighbours_checked)")
 
 
+def _next_pow2(n: int) -> int:
+    return 1 << max(0, int(n) - 1).bit_length()
+
+
 def build_neighbours_checked(x, triangles, body, cutoff, capacity: int | None = None,
                              cell_capacity: int = DEFAULT_CELL_CAPACITY,
                              max_tries: int = 12) -> NeighbourList:
     """Host-side `build_neighbours` that retries, doubling whichever capacity overflowed
-    (at least up to the count found), until nothing is dropped.  Not jit-compatible."""
+    (at least up to the count found, rounded up to a power of two), until nothing is
+    dropped; raises `NeighbourListOverflow` after `max_tries`.  Not jit-compatible."""
     x_np = np.asarray(x)
     if not np.all(np.isfinite(x_np)):
         raise ParameterError("x holds non-finite positions; contact needs finite coordinates")
@@ -247,10 +252,11 @@ def build_neighbours_checked(x, triangles, body, cutoff, capacity: int | None = 
         nbrs = build_neighbours(x, triangles, body, cutoff, capacity, cell_capacity)
         if not bool(nbrs.overflow):
             return nbrs
+        # grow to powers of two: few distinct static shapes, so few recompilations
         if int(nbrs.count) > capacity:
-            capacity = max(2 * capacity, int(nbrs.count))
+            capacity = _next_pow2(max(2 * capacity, int(nbrs.count)))
         if int(nbrs.max_cell_count) > cell_capacity:
-            cell_capacity = max(2 * cell_capacity, int(nbrs.max_cell_count))
+            cell_capacity = _next_pow2(max(2 * cell_capacity, int(nbrs.max_cell_count)))
     check_overflow(nbrs)
     return nbrs
 

@@ -56,7 +56,10 @@ class FIRE:
         vn = jnp.linalg.norm(v)
         fn = jnp.linalg.norm(f)
         v = (1.0 - alpha) * v + alpha * vn * f / jnp.where(fn > 0, fn, 1.0)
-        y = y + dt * v / sq
+        dy = dt * v / sq
+        big = jnp.max(jnp.linalg.norm(dy, axis=-1))
+        dy = dy * jnp.minimum(1.0, args["max_move"] / jnp.where(big > 0, big, 1.0))
+        y = y + dy
         F = system.force(y, args)
         n = s["n"] + 1
         m = jax.lax.cond(n % self.refresh == 0,

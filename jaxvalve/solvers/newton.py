@@ -98,7 +98,8 @@ class NewtonKrylov:
         eta = jnp.clip(jnp.sqrt(Fn / s["F0"]), self.eta_min, self.eta_max)
         d, n_cg, neg = self._cg(Av, Pinv, F, eta * Fn)
         dmax = jnp.max(jnp.linalg.norm(d, axis=-1))
-        alpha0 = jnp.minimum(1.0, self.max_step / jnp.where(dmax > 0, dmax, 1.0))
+        limit = jnp.minimum(self.max_step, args["max_move"])  # contact skin / 2
+        alpha0 = jnp.minimum(1.0, limit / jnp.where(dmax > 0, dmax, 1.0))
 
         def ls_cond(c):
             alpha, k, ok, _, _ = c

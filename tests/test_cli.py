@@ -1,0 +1,30 @@
+"""The CLI entry point solves the membrane it describes."""
+import json
+
+import jax.numpy as jnp
+import pytest
+
+from jaxvalve import equilibrium, meshgen
+from jaxvalve.cli import main
+from jaxvalve.materials import NeoHookean
+from jaxvalve.problem import Params, make_problem, mmhg
+from jaxvalve.solvers import FIRE
+
+
+def test_membrane_subcommand_reports_the_equilibrium(capsys):
+    assert main(["membrane", "--rings", "3", "--model", "neo-hookean", "--solver", "fire",
+                 "--json"]) == 0
+    out = json.loads(capsys.readouterr().out.split("\n", 1)[1])
+    p, t, b = meshgen.disk(5.0, 3)
+    prob, ref = make_problem(p, t, fixed=b)
+    params = Params(ref=ref, material=NeoHookean(1 / 3), thickness=0.3, pressure=mmhg(80))
+    x = equilibrium.solve(prob, params, jnp.asarray(meshgen.lift(p)), FIRE()).x
+    assert out["converged"] and out["relative_residual"] < 1e-6
+    assert out["centre_deflection_mm"] == pytest.approx(float(x[0, 2]), rel=1e-5)
+
+
+def test_help_and_missing_subcommand(capsys):
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    assert "membrane" in capsys.readouterr().out
+    assert main([]) == 2
