@@ -1,0 +1,13 @@
+"""jaxvalve: differentiable membrane mechanics for aortic valve closure (Ozaki leaflets).
+
+Importing jaxvalve switches JAX to float64 (the project's default precision).
+"""
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+from .equilibrium import solve  # noqa: E402
+from .problem import Params, Problem, make_problem, mmhg  # noqa: E402
+
+__version__ = "0.1.0"
+__all__ = ["solve", "Params", "Problem", "make_problem", "mmhg", "__version__"]
