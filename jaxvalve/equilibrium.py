@@ -19,6 +19,7 @@ from .errors import ConvergenceError, ParameterError
 from .problem import Params, Problem, validate_params
 from .solvers import RESULTS, EquilibriumSystem, FixedPoint, NewtonKrylov, Solution, Stats, iterate
 from .solvers.base import relative_residual
+from .solvers.newton import _apply_blocks, _precond
 from . import contact as _contact
 
 DEFAULT_SKIN = 1.0  # mm: pair lists are rebuilt once a node has moved skin / 2
@@ -120,7 +121,6 @@ def _adjoint_solve(problem, params, x, nbrs, delta, g, tol=1e-12, maxiter=2000):
 
     _, vjp = jax.vjp(R, x, params)
     ref = assembly.prepare(problem, params)
-    from .solvers.newton import _apply_blocks, _precond
     V, w = _precond(assembly.block_diagonal(x, problem, params, ref), problem.free)
     KT = lambda v: -vjp(v * free)[0] * free
     M = lambda r: _apply_blocks(V, 1.0 / w, r) * free
