@@ -13,6 +13,18 @@ class ParameterError(JaxvalveError):
     """A physical or numerical parameter is outside its valid range."""
 
 
+class RootFileError(JaxvalveError):
+    """An input or output file is missing, unreadable or holds bad data (names the file)."""
+
+
+class SurfaceFileError(RootFileError, MeshError):
+    """A surface mesh file is missing, unreadable, has no triangles or holds bad data."""
+
+
+class LandmarksFileError(RootFileError, ParameterError):
+    """A landmarks file is missing, unreadable, or a field is missing or malformed."""
+
+
 class ConvergenceError(RuntimeError):
     """An equilibrium solve did not converge; carries the solver's `Solution`."""
 

@@ -57,19 +57,29 @@ def node_areas(x_ref, triangles):
     return jnp.zeros(x_ref.shape[0], x_ref.dtype).at[triangles].add(area[:, None] / 3.0)
 
 
-def pair_distances(x, triangles, nbrs: NeighbourList):
-    """Unsigned node-triangle distances (capacity,) in mm for the rows of `nbrs`;
-    padding rows get +inf."""
+def pair_distances(x, triangles, nbrs: NeighbourList, signed: bool = False):
+    """Node-triangle distances (capacity,) in mm for the rows of `nbrs`; padding rows get
+    +inf.  With ``signed``, also the side (capacity,): -1 where the node lies over the
+    triangle's face on its -n side (n = (b - a) x (c - a)), else +1."""
     n, m = x.shape[0], triangles.shape[0]
     valid = nbrs.valid
     i = jnp.clip(nbrs.pairs[:, 0], 0, n - 1)
     t = triangles[jnp.clip(nbrs.pairs[:, 1], 0, m - 1)]
-    d, _, _ = jax.vmap(point_triangle_distance)(x[i], x[t[:, 0]], x[t[:, 1]], x[t[:, 2]])
-    return jnp.where(valid, d, jnp.inf)
+    p, a, b, c = x[i], x[t[:, 0]], x[t[:, 1]], x[t[:, 2]]
+    d, q, bary = jax.vmap(point_triangle_distance)(p, a, b, c)
+    d = jnp.where(valid, d, jnp.inf)
+    if not signed:
+        return d
+    # negative only for a node over the face (closest point inside it) on its -n side:
+    # a node beside the sheet, beyond an edge, is not a crossing
+    nrm = jnp.cross(b - a, c - a)
+    over = jnp.all(bary > 0, axis=-1)
+    side = jnp.where(over & (jnp.sum((p - q) * nrm, axis=-1) < 0), -1.0, 1.0)
+    return d, side
 
 
 @functools.partial(jax.tree_util.register_dataclass,
-                   data_fields=["stiffness", "gap"], meta_fields=[])
+                   data_fields=["stiffness", "gap"], meta_fields=["one_sided"])
 @dataclasses.dataclass(frozen=True)
 class SmoothContact:
     """C1 penalty contact: pressure k (g0 - d)_+ between sheets (see module docstring).
@@ -77,10 +87,16 @@ class SmoothContact:
     stiffness: k, contact pressure per unit penetration into the layer (MPa/mm).
     gap: g0, activation distance (mm); build the neighbour list with cutoff >= gap + skin.
     Both are traced (differentiable) fields.
+    one_sided: (static) measure the gap as a signed distance s = +-d, positive on the +n
+    side of the nearest triangle of the other body, and penalise (k/2)(g0 - s)_+^2.  A node
+    that crossed the other sheet is then pushed back, never further through.  Use it when
+    the bodies face each other with their +n sides, as valve leaflets do (their normals
+    point from the aortic to the ventricular side, and their ventricular sides coapt).
     """
 
     stiffness: float | jax.Array = 1.0
     gap: float | jax.Array = 0.2
+    one_sided: bool = False
 
     def validate(self) -> "SmoothContact":
         """Host-side check; raises `ParameterError` naming the parameter and its range."""
@@ -101,12 +117,20 @@ class SmoothContact:
 
     def energy(self, x, triangles, nbrs: NeighbourList, node_area):
         """Contact energy (N mm) for positions x (N,3) mm, node_area (N,) mm^2."""
-        d = pair_distances(x, triangles, nbrs)
         cap = nbrs.capacity
-        dmin = jax.ops.segment_min(d, nbrs.group, num_segments=cap, indices_are_sorted=True)
+        seg = dict(segment_ids=nbrs.group, num_segments=cap, indices_are_sorted=True)
+        if self.one_sided:
+            d, side = pair_distances(x, triangles, nbrs, signed=True)
+            dmin = jax.ops.segment_min(d, **seg)
+            # the side of the nearest triangle; on a tie (a shared edge) the + side wins
+            near = nbrs.valid & (d <= dmin[nbrs.group])
+            side = jax.ops.segment_max(jnp.where(near, side, -1.0), **seg)
+            dmin = jnp.where(jnp.isfinite(dmin), side * dmin, self.gap)
+        else:
+            d = pair_distances(x, triangles, nbrs)
+            dmin = jax.ops.segment_min(d, **seg)
         dmin = jnp.minimum(dmin, self.gap)           # empty / padding groups -> no energy
-        node = jax.ops.segment_max(jnp.where(nbrs.valid, nbrs.pairs[:, 0], 0), nbrs.group,
-                                   num_segments=cap, indices_are_sorted=True)
+        node = jax.ops.segment_max(jnp.where(nbrs.valid, nbrs.pairs[:, 0], 0), **seg)
         area = node_area[jnp.clip(node, 0, x.shape[0] - 1)]
         return 0.5 * jnp.sum(area * self.potential(dmin))
 

@@ -1,0 +1,142 @@
+"""A three-leaflet valve in an aortic root: assembly, placement and closure.
+
+`build_valve(root, mesh)` stacks three copies of one leaflet mesh into a single membrane
+problem (body id = leaflet index), fixes the sutured-edge nodes on the suturing paths and
+returns a `Valve`.  `settle(valve, ...)` is the closure at P = 0 that gives the start;
+`close(valve, ...)` closes it under a pressure.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import jax.numpy as jnp
+import numpy as np
+
+from . import equilibrium
+from .contact import SmoothContact
+from .errors import ConvergenceError, ParameterError
+from .leaflet_mesh import LeafletMesh
+from .placement import place_leaflet
+from .problem import Params, Problem, make_problem, mmhg
+from .solvers import FIRE
+
+__all__ = ["Valve", "build_valve", "settle", "close"]
+
+
+@dataclasses.dataclass(frozen=True)
+class Valve:
+    """Three leaflets in a root.
+
+    problem: the stacked membrane problem (fixed = sutured nodes, body = leaflet 0..2).
+    ref (N, 2) mm: each node's template coordinates (the stress-free state).
+    x_placed (N, 3) mm: mapped to the commissure planes, sutured nodes on the paths.
+    x_start (N, 3) mm: after the closure at P = 0 (equal to x_placed until `settle`).
+    free_edge (N,) bool; suture_strain (3,): path length / sutured length - 1.
+    """
+
+    root: Any
+    leaflet: LeafletMesh
+    problem: Problem
+    ref: Any
+    x_placed: np.ndarray
+    x_start: np.ndarray
+    free_edge: np.ndarray
+    suture_strain: np.ndarray
+
+    @property
+    def n_leaflets(self):
+        return 3
+
+    @property
+    def nodes_per_leaflet(self):
+        return self.leaflet.n_nodes
+
+    @property
+    def triangles(self):
+        return np.asarray(self.problem.triangles)
+
+    @property
+    def body(self):
+        return np.asarray(self.problem.body)
+
+    def leaflet_slice(self, i):
+        n = self.nodes_per_leaflet
+        return slice(i * n, (i + 1) * n)
+
+    def params(self, material, pressure_mmhg=80.0, contact=None, thickness=0.3,
+               fibre_angle=0.0):
+        """`Params` for this valve (pressure in mmHg)."""
+        return Params(ref=self.ref, material=material, thickness=thickness,
+                      pressure=mmhg(pressure_mmhg), fibre_angle=fibre_angle,
+                      contact=SmoothContact(one_sided=True) if contact is None else contact)
+
+
+def build_valve(root, lmesh: LeafletMesh) -> Valve:
+    """Stack three copies of ``lmesh`` and place them in ``root``."""
+    n = lmesh.n_nodes
+    centre = np.asarray(root.origin, float)
+    xs, strain = [], []
+    for i in range(3):
+        c0, c1 = root.commissures[i], root.commissures[(i + 1) % 3]
+        xs.append(place_leaflet(lmesh, c0, c1, root.paths[i], root.axis, centre))
+        strain.append(root.path_lengths[i] / lmesh.template.sutured_length - 1.0)
+    strain = np.asarray(strain)
+    if np.any(np.abs(strain) > 0.25):
+        raise ParameterError(
+            f"suturing paths are {np.round(100 * strain, 1)} % longer than the template's "
+            f"sutured edge ({lmesh.template.sutured_length:.2f} mm); the placement allows "
+            "at most 25 %: choose a template whose sutured edge fits the root")
+    x = np.concatenate(xs)
+    tri = np.concatenate([lmesh.triangles + i * n for i in range(3)])
+    fixed = np.tile(lmesh.sutured_mask, 3)
+    body = np.repeat(np.arange(3), n)
+    ref = np.tile(lmesh.points, (3, 1))
+    prob, ref = make_problem(ref, tri, fixed=fixed, body=body)
+    return Valve(root, lmesh, prob, ref, x, x, np.tile(lmesh.free_mask, 3), strain)
+
+
+def settle(valve: Valve, material, *, solver=None, thickness=0.3) -> Valve:
+    """The closure at P = 0 from the placement: a short relaxation of the harmonic surface
+    (the paper's Algorithm 2.1 at P = 0 with its own stop rule plays the same part).  An
+    unloaded membrane has slack, zero-stiffness directions, so it is not driven to a tight
+    residual: the default stops at a relative residual of 1e-3 or after 2000 FIRE steps,
+    whichever comes first.  Unloaded leaflets hang apart, so no contact is computed here.
+    Returns the valve with ``x_start`` set and the relaxation's `Solution`."""
+    solver = FIRE(rtol=1e-3, max_steps=2000) if solver is None else solver
+    params = valve.params(material, 0.0, None, thickness).replace(contact=None)
+    sol = equilibrium.solve(valve.problem, params, jnp.asarray(valve.x_placed), solver,
+                            throw=False)
+    if not np.all(np.isfinite(np.asarray(sol.x))):
+        raise ConvergenceError("the closure at P = 0 produced non-finite positions", sol)
+    return dataclasses.replace(valve, x_start=np.asarray(sol.x)), sol
+
+
+def close(valve: Valve, material, pressure_mmhg=80.0, *, solver=None, contact=None,
+          thickness=0.3, fibre_angle=0.0, x0=None, throw=True):
+    """Equilibrium of the valve under ``pressure_mmhg`` from ``x0`` (default x_start)."""
+    params = valve.params(material, pressure_mmhg, contact, thickness, fibre_angle)
+    x0 = valve.x_start if x0 is None else x0
+    return equilibrium.solve(valve.problem, params, jnp.asarray(x0), solver, throw=throw)
+
+
+def leaflet_crossings(valve: Valve, x) -> np.ndarray:
+    """Pairs (P, 2) of triangles of different leaflets that intersect in ``x`` (N, 3),
+    by an exact triangle-triangle test that shares no code with the contact law.
+
+    Neighbouring leaflets are sewn to the same commissure point, so triangles that hold a
+    node at one commissure touch there by construction: a pair in which both triangles
+    hold a node at the same commissure is not counted."""
+    from .intersect import leaflets_intersect
+
+    x = np.asarray(x, float)
+    tri = valve.triangles
+    pairs = leaflets_intersect(x, tri, valve.body)
+    if len(pairs) == 0:
+        return pairs
+    com = np.asarray(valve.root.commissures, float)
+    # (M, 3): index of the commissure each triangle touches, or -1
+    d = np.linalg.norm(x[tri][:, :, None, :] - com[None, None], axis=-1)  # (M, 3, 3)
+    at = np.where(np.any(d < 1e-9, axis=1), np.arange(3)[None], -1)     # (M, 3 commissures)
+    shared = np.any((at[pairs[:, 0]] >= 0) & (at[pairs[:, 0]] == at[pairs[:, 1]]), axis=1)
+    return pairs[~shared]
