@@ -7,6 +7,7 @@ from jax.test_util import check_grads
 from scipy.optimize import minimize
 
 from jaxvalve.errors import NeighbourListOverflow, ParameterError
+from jaxvalve.contact.neighbours import ROW_WIDTH
 from jaxvalve.contact import (
     PaperContact, SmoothContact, brute_force_pairs, build_neighbours,
     build_neighbours_checked, check_overflow, closest_point_barycentric, default_capacity,
@@ -166,11 +167,11 @@ def test_signed_plane_distance():
 
 # ------------------------------------------------------------------------ broad phase
 # The tests reuse a few static shapes (meshes, capacities) so that jit compiles stay few.
-CAP, CELL = 8192, 64
+CAP, SCAN = 16384, 65536
 
 
 def _build(x, tri, body, cutoff):
-    nbrs = build_neighbours(x, tri, body, cutoff, capacity=CAP, cell_capacity=CELL)
+    nbrs = build_neighbours(x, tri, body, cutoff, capacity=CAP, scan_capacity=SCAN)
     assert not bool(nbrs.overflow)
     return nbrs
 
@@ -182,7 +183,8 @@ def test_broad_phase_superset_of_brute_force(nbody):
     cutoff = 0.35
     nbrs = _build(x, tri, body, cutoff)
     cand = pair_set(nbrs)
-    assert len(cand) == int(nbrs.count) == len(set(cand))            # no duplicates
+    assert len(cand) == int(nbrs.n_pairs) == len(set(cand))          # no duplicates
+    assert int(nbrs.count) == ROW_WIDTH * int(nbrs.n_rows) >= len(cand)
     cand = set(cand)
     ref = brute_force_pairs(x, tri, body, cutoff)
     assert len(ref) > 100 and ref <= cand
@@ -204,24 +206,50 @@ def test_broad_phase_superset_of_brute_force(nbody):
 def test_overflow_flag_and_checked_builder():
     x, tri, body = crumpled_bodies(np.random.default_rng(2))
     cutoff = 0.35
-    small = build_neighbours(x, tri, body, cutoff, capacity=64, cell_capacity=2)
-    assert bool(small.overflow) and int(small.count) > 64 and int(small.max_cell_count) > 2
-    assert int(small.valid.sum()) == 64                          # full, and flagged
-    with pytest.raises(NeighbourListOverflow,
-                       match=rf"capacity=64 .*{int(small.count)}.*cell_capacity=2 "):
+    full = _build(x, tri, body, cutoff)
+    # too few pair slots: flagged, the rows kept are full, count says how many are needed
+    small = build_neighbours(x, tri, body, cutoff, capacity=64, scan_capacity=SCAN)
+    assert bool(small.overflow) and int(small.count) == int(full.count) > 64
+    assert int(small.valid.sum()) <= 64 and int(small.valid.sum()) > 32
+    assert set(pair_set(small)) < set(pair_set(full))                # dropped, not invented
+    with pytest.raises(NeighbourListOverflow, match=rf"capacity=64 .*{int(full.count)}"):
         check_overflow(small)
-    ok = build_neighbours_checked(x, tri, body, cutoff, capacity=64, cell_capacity=2)
+    # too small a grid scan: flagged with the scan slots needed
+    scan = build_neighbours(x, tri, body, cutoff, capacity=CAP, scan_capacity=32)
+    assert bool(scan.overflow) and int(scan.n_scan) > scan.scan_capacity
+    with pytest.raises(NeighbourListOverflow, match=rf"scan_capacity={scan.scan_capacity} "
+                                                    rf".*{int(scan.n_scan)}"):
+        check_overflow(scan)
+    ok = build_neighbours_checked(x, tri, body, cutoff, capacity=64, scan_capacity=32)
     assert not bool(ok.overflow) and ok.capacity >= int(ok.count)
-    assert ok.cell_capacity >= int(ok.max_cell_count)
+    assert ok.scan_capacity >= int(ok.n_scan)
     check_overflow(ok)
     assert brute_force_pairs(x, tri, body, cutoff) <= set(pair_set(ok))
-    assert set(pair_set(ok)) == set(pair_set(_build(x, tri, body, cutoff)))
+    assert set(pair_set(ok)) == set(pair_set(full))
     assert default_capacity(len(x)) >= 8 * len(x)
     with pytest.raises(NeighbourListOverflow, match="capacity"):
-        build_neighbours_checked(x, tri, body, cutoff, capacity=64, cell_capacity=2,
+        build_neighbours_checked(x, tri, body, cutoff, capacity=64, scan_capacity=32,
                                  max_tries=1)
     with pytest.raises(ParameterError, match="cutoff"):
         build_neighbours_checked(x, tri, body, -1.0)
+
+
+def test_update_overflow_is_sticky():
+    """A rebuild inside `update` that needs more slots than the capacity sets overflow and
+    keeps the largest count, even after a later rebuild that fits again."""
+    x, tri, body = crumpled_bodies(np.random.default_rng(2))
+    far = x + np.where(body == 1, 2.0, 0.0)[:, None] * np.array([0.0, 0.0, 1.0])
+    nbrs = build_neighbours(far, tri, body, 0.35, capacity=256, scan_capacity=SCAN)
+    assert not bool(nbrs.overflow)
+    need = int(_build(x, tri, body, 0.35).count)
+    assert need > 256
+    up = jax.jit(lambda nb, y: update(nb, y, tri, body, 0.2))
+    close = up(nbrs, jnp.asarray(x))
+    assert bool(close.overflow) and int(close.count) == need
+    back = up(close, jnp.asarray(far))
+    assert bool(back.overflow) and int(back.count) == need and int(back.n_rows) * 8 < need
+    with pytest.raises(NeighbourListOverflow, match=f"capacity=256 .*{need}"):
+        check_overflow(back)
 
 
 def test_update_inside_while_loop():
@@ -416,6 +444,120 @@ def test_smooth_validate(kw, name):
     SmoothContact().validate()
 
 
+# ------------------------------------------------------------------------ dense layout
+def _reference_energy(c, x, tri, body, pairs, area):
+    """The previous implementation, as a reference: a flat pair list sorted by (node,
+    body of T), vmap'ed point-triangle distances, segment_min per group (autodiff all
+    through).  Given the same candidate pairs it must give the same energy.  (The
+    one-sided law depends on the candidates beyond the cutoff: a node farther than the
+    cutoff on the -n side of its nearest candidate is penalised.)"""
+    pairs = np.array(sorted(pairs, key=lambda r: (r[0], body[tri[r[1], 0]], r[1])))
+    i, t = pairs[:, 0], pairs[:, 1]
+    _, group = np.unique(i * 100 + body[tri[t, 0]], return_inverse=True)
+    ng = int(group.max()) + 1
+    node = jnp.asarray(i[np.unique(group, return_index=True)[1]])
+    seg = dict(segment_ids=jnp.asarray(group), num_segments=ng, indices_are_sorted=True)
+    tt = jnp.asarray(tri)[t]
+
+    def energy(x):
+        p, a, b, cc = x[i], x[tt[:, 0]], x[tt[:, 1]], x[tt[:, 2]]
+        d, q, bary = jax.vmap(point_triangle_distance)(p, a, b, cc)
+        dmin = jax.ops.segment_min(d, **seg)
+        if c.one_sided:   # -1: over the face (all weights > 0), on the -n side
+            back = jnp.sum((p - q) * jnp.cross(b - a, cc - a), -1) < 0
+            side = jnp.where(jnp.all(bary > 0, axis=-1) & back, -1.0, 1.0)
+            near = d <= dmin[jnp.asarray(group)]
+            dmin = jax.ops.segment_max(jnp.where(near, side, -1.0), **seg) * dmin
+        return 0.5 * jnp.sum(area[node] * c.potential(jnp.minimum(dmin, c.gap)))
+
+    return energy
+
+
+@pytest.mark.parametrize("one_sided", [False, True])
+@pytest.mark.parametrize("seed,nbody", [(5, 2), (6, 3)])
+def test_dense_layout_matches_reference(seed, nbody, one_sided):
+    """Energy, forces and Hessian-vector products of the dense (chunked) layout equal the
+    previous flat implementation on random crumpled sheets that cross each other; the
+    pair list holds exactly the bounding-sphere candidates."""
+    rng = np.random.default_rng(seed)
+    x, tri, body = crumpled_bodies(rng, nb=nbody)
+    cutoff = 0.45
+    nbrs = _build(x, tri, body, cutoff)
+    cen = x[tri].mean(1)
+    R = np.linalg.norm(x[tri] - cen[:, None], axis=-1).max(1)
+    ii, tt = np.nonzero((np.linalg.norm(x[:, None] - cen[None], axis=-1) < cutoff + R[None])
+                        & (body[:, None] != body[tri[:, 0]][None]))
+    assert set(pair_set(nbrs)) == set(zip(ii.tolist(), tt.tolist()))
+    c = SmoothContact(stiffness=2.0, gap=0.2, one_sided=one_sided)
+    xj, tj = jnp.asarray(x), jnp.asarray(tri)
+    area = node_areas(xj, tj)
+    ref = _reference_energy(c, x, tri, body, list(zip(ii, tt)), area)
+    E, E_ref = _energy(c, xj, tj, nbrs, area), jax.jit(ref)(xj)
+    assert float(E_ref) > 0.05 and abs(float(E - E_ref)) <= 1e-12 * float(E_ref)
+    F, F_ref = _forces(c, xj, tj, nbrs, area), -jax.jit(jax.grad(ref))(xj)
+    scale = float(jnp.max(jnp.abs(F_ref)))
+    assert scale > 1e-2 and float(jnp.max(jnp.abs(F - F_ref))) <= 1e-12 * scale
+    v = jnp.asarray(rng.normal(size=x.shape))
+    hvp = jax.jit(lambda f: jax.jvp(jax.grad(f), (xj,), (v,))[1], static_argnums=0)
+    H = hvp(lambda y: c.energy(y, tj, nbrs, area))
+    H_ref = hvp(ref)
+    assert float(jnp.max(jnp.abs(H - H_ref))) <= 1e-10 * float(jnp.max(jnp.abs(H_ref)))
+
+
+def test_chunked_loops_and_buckets_agree(monkeypatch):
+    """Tiny loop chunks (many iterations, a clamped last chunk) give the same list and
+    energy as the defaults."""
+    from jaxvalve.contact import neighbours as NB, smooth as SM
+    x, tri, body = crumpled_bodies(np.random.default_rng(7), nb=3)
+    c = SmoothContact(one_sided=True)
+    xj, tj = jnp.asarray(x), jnp.asarray(tri)
+    area = node_areas(xj, tj)
+    nbrs = _build(x, tri, body, 0.45)
+    E = float(_energy(c, xj, tj, nbrs, area))
+    F = _forces(c, xj, tj, nbrs, area)
+    monkeypatch.setattr(NB, "SCAN_CHUNK", 3)
+    monkeypatch.setattr(SM, "CHUNK_ROWS", 5)
+    build = jax.jit(NB._build.__wrapped__,
+                    static_argnames=("capacity", "scan_capacity", "n_bodies", "grid_size"))
+    small = build(xj, tj, jnp.asarray(body), 0.45, nbrs.capacity, nbrs.scan_capacity,
+                  nbrs.n_bodies, nbrs.grid_size)
+    assert int(nbrs.n_scan) > 10 * 3 * 32 and int(nbrs.n_rows) > 10 * 5
+    for name in ("cand", "row_group", "group_node", "group_row", "count", "n_pairs"):
+        assert np.array_equal(getattr(small, name), getattr(nbrs, name)), name
+    E2 = float(jax.jit(lambda y: c.energy(y, tj, small, area))(xj))
+    F2 = -jax.jit(jax.grad(lambda y: c.energy(y, tj, small, area)))(xj)
+    assert E2 == E and bool(jnp.all(F2 == F))
+
+
+def test_one_sided_pushes_crossed_node_back():
+    """A node slightly through a sheet (on its -n side) is pushed back to the +n side by
+    the one-sided law (and further through by the unsigned one); the energy is continuous
+    across the sheet (s = 0) and so is the force (away from exactly s = 0, where the
+    distance gradient is taken as 0)."""
+    p, t = grid_sheet(4, 2.0)                          # normal +z
+    x, tri, body = combine((p, t), (np.array([[0.7, 0.9, 0.05]]), np.zeros((0, 3), np.int32)))
+    nbrs = build_neighbours(x, tri, body, 0.45, capacity=64)
+    xj, tj = jnp.asarray(x), jnp.asarray(tri)
+    area = node_areas(xj, tj).at[-1].set(1.0)
+    one, two = SmoothContact(one_sided=True), SmoothContact()
+
+    def at(c, z):
+        y = xj.at[-1, 2].set(z)
+        return float(_energy(c, y, tj, nbrs, area)), np.asarray(_forces(c, y, tj, nbrs, area))
+
+    e0 = at(one, 1.0)[0]                               # the sheet's own nodes: no energy
+    for z in (-0.01, -0.1):
+        E, F = at(one, z)
+        assert F[-1, 2] > 0 and abs(F[-1, 2] - 0.5 * 1.0 * (0.2 - z)) < 1e-12  # pushed up
+        assert abs(E - e0 - 0.25 * (0.2 - z) ** 2) < 1e-12
+        assert at(two, z)[1][-1, 2] < 0                # unsigned: pushed further through
+    for h in (1e-4, 1e-7):
+        (Ep, Fp), (Em, Fm) = at(one, h), at(one, -h)
+        assert abs(Ep - Em) < 0.25 * 4 * 0.2 * h + 1e-15          # continuous energy
+        assert abs(Fp[-1, 2] - Fm[-1, 2]) < 2 * h + 1e-14          # and force
+    assert abs(at(one, 0.0)[0] - e0 - 0.25 * 0.2 ** 2) < 1e-15
+
+
 # ------------------------------------------------------------------------ paper law
 _paper = jax.jit(lambda law, x, F, delta, tri, nbrs: law.force(x, F, delta, tri, nbrs))
 
@@ -493,7 +635,7 @@ def test_paper_threshold_direction_and_zero_force_guard():
     # outside the d-vicinity of the barycentre: no force even below d_pi
     x = np.vstack([a, rT + [0.0, 0.0, 2.6]])
     nb = build_neighbours(x, tri, body, 3.0, capacity=8)
-    assert int(nb.count) == 1
+    assert int(nb.n_pairs) == 1
     F_nc = np.zeros((4, 3))
     F_nc[3] = [0, 0, -0.01]
     assert np.all(np.asarray(_paper(law, jnp.asarray(x), jnp.asarray(F_nc), 250.0,

@@ -40,10 +40,13 @@ import jax
 import jax.numpy as jnp
 
 from ..errors import ParameterError
-from .geometry import point_triangle_distance
-from .neighbours import NeighbourList
+from .geometry import (closest_point_soa, nearest_search_soa, point_triangle_distance_soa,
+                       triangle_table)
+from .neighbours import MAX_GROUP, SLOT_BITS, NeighbourList, bucket_index, bucket_sizes
 
-__all__ = ["SmoothContact", "pair_distances", "node_areas"]
+__all__ = ["SmoothContact", "pair_distances", "node_areas", "nearest_triangles"]
+
+_INT64_MAX = (1 << 63) - 1
 
 
 def node_areas(x_ref, triangles):
@@ -57,25 +60,111 @@ def node_areas(x_ref, triangles):
     return jnp.zeros(x_ref.shape[0], x_ref.dtype).at[triangles].add(area[:, None] / 3.0)
 
 
+def _columns(x, idx):
+    """x[idx] as a tuple of 3 component arrays (structure of arrays)."""
+    return tuple(x[:, k][idx] for k in range(3))
+
+
 def pair_distances(x, triangles, nbrs: NeighbourList, signed: bool = False):
-    """Node-triangle distances (capacity,) in mm for the rows of `nbrs`; padding rows get
-    +inf.  With ``signed``, also the side (capacity,): -1 where the node lies over the
-    triangle's face on its -n side (n = (b - a) x (c - a)), else +1."""
+    """Node-triangle distances (capacity,) in mm for the rows of ``nbrs.pairs``; padding
+    rows get +inf.  With ``signed``, also the side (capacity,): -1 where the node lies over
+    the triangle's face on its -n side (n = (b - a) x (c - a)), else +1."""
     n, m = x.shape[0], triangles.shape[0]
-    valid = nbrs.valid
-    i = jnp.clip(nbrs.pairs[:, 0], 0, n - 1)
-    t = triangles[jnp.clip(nbrs.pairs[:, 1], 0, m - 1)]
-    p, a, b, c = x[i], x[t[:, 0]], x[t[:, 1]], x[t[:, 2]]
-    d, q, bary = jax.vmap(point_triangle_distance)(p, a, b, c)
-    d = jnp.where(valid, d, jnp.inf)
+    valid = nbrs.slot_valid
+    node = jnp.clip(nbrs.group_node[nbrs.row_group], 0, n - 1)[:, None]
+    t = triangles[jnp.where(valid, nbrs.cand, 0)]
+    p = tuple(jnp.broadcast_to(c, valid.shape) for c in _columns(x, node))
+    a, b, c = (_columns(x, t[..., k]) for k in range(3))
+    d, _, _, side = point_triangle_distance_soa(p, a, b, c, side=True)
+    d = jnp.where(valid, d, jnp.inf).reshape(-1)
     if not signed:
         return d
-    # negative only for a node over the face (closest point inside it) on its -n side:
-    # a node beside the sheet, beyond an edge, is not a crossing
-    nrm = jnp.cross(b - a, c - a)
-    over = jnp.all(bary > 0, axis=-1)
-    side = jnp.where(over & (jnp.sum((p - q) * nrm, axis=-1) < 0), -1.0, 1.0)
-    return d, side
+    return d, side.reshape(-1)
+
+
+CHUNK_ROWS = 256  # rows (x ROW_WIDTH slots) per loop iteration of the nearest search
+
+
+def nearest_triangles(x, triangles, nbrs: NeighbourList, one_sided: bool = False):
+    """The nearest candidate triangle of every group of `nbrs` (not differentiated).
+
+    Returns ``(tri, side, found, dist)``, each (R,) over the group slots: the triangle,
+    the side (+1 / -1, see `pair_distances`) of the node as seen from it, whether the group
+    exists (groups are [0, number of groups)), and the distance to it (to ~1e-12, from the
+    key; +inf where not found).
+
+    The rows in use ([0, ``nbrs.n_rows``)) are visited CHUNK_ROWS at a time in a loop
+    with a dynamic trip count, so the cost follows the pairs in use, not the capacity.
+    One fused pass per chunk evaluates every slot and packs (squared distance, side, slot)
+    into one int64 key, whose minimum is taken per row (a dense reduction) and then per
+    group (a scatter-min over the chunk's rows).  The key keeps the top 52 - SLOT_BITS - 1
+    mantissa bits of the squared distance, so distances within ~1e-12 (relative) count as
+    ties, which go to the + side (with ``one_sided``) and then to the first candidate.
+    """
+    x = jax.lax.stop_gradient(x)
+    n, m = x.shape[0], triangles.shape[0]
+    R, W = nbrs.cand.shape
+    C = min(R, CHUNK_ROWS)
+    table = triangle_table(x, triangles)                              # (16, M)
+    xc = tuple(x[:, k] for k in range(3))
+    lane = jnp.arange(W, dtype=jnp.int32)[None, :]
+    clear = ~jnp.int64((2 << SLOT_BITS) - 1)
+
+    def body(i, gkey):
+        r0 = jnp.minimum(i * C, R - C).astype(jnp.int32)
+        cand = jax.lax.dynamic_slice(nbrs.cand, (r0, jnp.int32(0)), (C, W))
+        rg = jax.lax.dynamic_slice(nbrs.row_group, (r0,), (C,))
+        valid = cand < m
+        t = jnp.where(valid, cand, 0)
+        cols = tuple(table[k][t] for k in range(table.shape[0]))      # 16 x (C, W)
+        node = jnp.clip(nbrs.group_node[rg], 0, n - 1)
+        d2, back = nearest_search_soa(tuple(c[node][:, None] for c in xc), cols)
+        key = jax.lax.bitcast_convert_type(d2, jnp.int64) & clear
+        if one_sided:
+            key = key | jnp.left_shift(back.astype(jnp.int64), SLOT_BITS)
+        local = (r0 + jnp.arange(C, dtype=jnp.int32) - nbrs.group_row[rg])[:, None] * W + lane
+        key = key | jnp.clip(local, 0, MAX_GROUP - 1).astype(jnp.int64)
+        key = jnp.where(valid, key, _INT64_MAX)
+        return gkey.at[rg].min(jnp.min(key, axis=1), mode="drop")
+
+    n_chunks = ((nbrs.n_rows + C - 1) // C).astype(jnp.int32)
+    gkey = jax.lax.fori_loop(jnp.int32(0), n_chunks, body, jnp.full((R,), _INT64_MAX, jnp.int64))
+    found = gkey != _INT64_MAX
+    slot = (gkey & (MAX_GROUP - 1)).astype(jnp.int32)
+    row = jnp.clip(nbrs.group_row + slot // W, 0, R - 1)
+    tri = jnp.clip(nbrs.cand[row, slot % W], 0, m - 1)
+    side = jnp.where((gkey >> SLOT_BITS) & 1 == 1, -1.0, 1.0).astype(x.dtype)
+    d2 = jax.lax.bitcast_convert_type(jnp.where(found, gkey & clear, 0), x.dtype)
+    return tri, side, found, jnp.where(found, jnp.sqrt(d2), jnp.inf)
+
+
+@jax.custom_jvp
+def _distance_rows(x, idx):
+    """Distances (B,) from nodes idx[0] to triangles (idx[1], idx[2], idx[3]), x (N, 3).
+
+    Custom derivative (envelope theorem, as `distance_soa`): d' = (e / d) . (p' - u a' -
+    v b' - w c'), with e = p - q and (u, v, w) the barycentric weights of the closest point
+    q; 0 at d = 0.  The coefficients are functions of x, so second derivatives are exact
+    too.  Written on structure-of-arrays columns: its transpose is 12 scalar scatters,
+    ~10x faster on CPU than the transpose of autodiff through the region selection."""
+    p, a, b, c = (_columns(x, idx[k]) for k in range(4))
+    return point_triangle_distance_soa(p, a, b, c)[0]
+
+
+@_distance_rows.defjvp
+def _distance_rows_jvp(primals, tangents):
+    x, idx = primals
+    x_dot = tangents[0]
+    p, a, b, c = (_columns(x, idx[k]) for k in range(4))
+    u, v, w = closest_point_soa(p, a, b, c)
+    e = tuple(p[k] - (u * a[k] + v * b[k] + w * c[k]) for k in range(3))
+    s = e[0] * e[0] + e[1] * e[1] + e[2] * e[2]
+    pos = s > 0
+    d = jnp.where(pos, jnp.sqrt(jnp.where(pos, s, 1.0)), 0.0)
+    inv = jnp.where(pos, 1.0 / jnp.where(pos, d, 1.0), 0.0)
+    pd, ad, bd, cd = (_columns(x_dot, idx[k]) for k in range(4))
+    d_dot = sum(e[k] * inv * (pd[k] - u * ad[k] - v * bd[k] - w * cd[k]) for k in range(3))
+    return d, d_dot
 
 
 @functools.partial(jax.tree_util.register_dataclass,
@@ -116,23 +205,35 @@ class SmoothContact:
         return 0.5 * self.stiffness * s * s
 
     def energy(self, x, triangles, nbrs: NeighbourList, node_area):
-        """Contact energy (N mm) for positions x (N,3) mm, node_area (N,) mm^2."""
-        cap = nbrs.capacity
-        seg = dict(segment_ids=nbrs.group, num_segments=cap, indices_are_sorted=True)
-        if self.one_sided:
-            d, side = pair_distances(x, triangles, nbrs, signed=True)
-            dmin = jax.ops.segment_min(d, **seg)
-            # the side of the nearest triangle; on a tie (a shared edge) the + side wins
-            near = nbrs.valid & (d <= dmin[nbrs.group])
-            side = jax.ops.segment_max(jnp.where(near, side, -1.0), **seg)
-            dmin = jnp.where(jnp.isfinite(dmin), side * dmin, self.gap)
-        else:
-            d = pair_distances(x, triangles, nbrs)
-            dmin = jax.ops.segment_min(d, **seg)
-        dmin = jnp.minimum(dmin, self.gap)           # empty / padding groups -> no energy
-        node = jax.ops.segment_max(jnp.where(nbrs.valid, nbrs.pairs[:, 0], 0), **seg)
-        area = node_area[jnp.clip(node, 0, x.shape[0] - 1)]
-        return 0.5 * jnp.sum(area * self.potential(dmin))
+        """Contact energy (N mm) for positions x (N,3) mm, node_area (N,) mm^2.
+
+        The nearest triangle of each (node, body) group is found without derivatives
+        (`nearest_triangles`).  Only the groups within the gap (s < g0) carry energy: they
+        are gathered to the front, and the distance to their nearest triangle is
+        recomputed differentiably (exact first and second derivatives, `_distance_rows`)
+        on the shortest of a few static prefixes that holds them (`lax.switch`)."""
+        tri, side, found, dist = nearest_triangles(x, triangles, nbrs, self.one_sided)
+        R = found.shape[0]
+        s = side * dist if self.one_sided else dist
+        gap = jax.lax.stop_gradient(self.gap)
+        active = found & (s < gap * (1.0 + 1e-9) + 1e-12)   # margin >> key truncation
+        rank = jnp.cumsum(active, dtype=jnp.int32) - 1
+        live = jnp.zeros((R,), jnp.int32).at[jnp.where(active, rank, R)].set(
+            jnp.arange(R, dtype=jnp.int32), mode="drop")
+        n_live = jnp.sum(active, dtype=jnp.int32)
+        sizes = bucket_sizes(R, smallest=256, most=3, factor=4)
+        branches = [functools.partial(self._energy_groups, b) for b in sizes]
+        return jax.lax.switch(bucket_index(sizes, n_live), branches, x, triangles,
+                              tri[live], side[live], jnp.arange(R) < n_live,
+                              nbrs.group_node[live], node_area)
+
+    def _energy_groups(self, b, x, triangles, tri, side, live, group_node, node_area):
+        node = jnp.clip(group_node[:b], 0, x.shape[0] - 1)
+        v = triangles[tri[:b]]
+        d = _distance_rows(x, jnp.stack([node, v[:, 0], v[:, 1], v[:, 2]]))
+        s = side[:b] * d if self.one_sided else d
+        s = jnp.minimum(jnp.where(live[:b], s, self.gap), self.gap)    # others: no energy
+        return 0.5 * jnp.sum(node_area[node] * self.potential(s))
 
     def forces(self, x, triangles, nbrs: NeighbourList, node_area):
         """Contact forces (N,3) in N: -grad energy."""
