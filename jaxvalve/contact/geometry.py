@@ -70,6 +70,21 @@ def _dot(u, v):
     return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
 
 
+def _voronoi(d1, d2, d3, d4, d5, d6):
+    """Ericson's region tests from the six dot products: (va, vb, vc) and the masks of
+    the vertex regions A, B, C and edge regions AB, AC, BC (in the order A, B, AB, C, AC,
+    BC); a point in none of them projects onto the face."""
+    vc = d1 * d4 - d3 * d2
+    vb = d5 * d2 - d1 * d6
+    va = d3 * d6 - d5 * d4
+    return va, vb, vc, ((d1 <= 0) & (d2 <= 0),
+                        (d3 >= 0) & (d4 <= d3),
+                        (vc <= 0) & (d1 >= 0) & (d3 <= 0),
+                        (d6 >= 0) & (d5 <= d6),
+                        (vb <= 0) & (d2 >= 0) & (d6 <= 0),
+                        (va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0))
+
+
 def closest_point_soa(p, a, b, c):
     """Barycentric weights ``(u, v, w)`` of the point of triangle (a, b, c) closest to p.
 
@@ -88,16 +103,7 @@ def closest_point_soa(p, a, b, c):
     d4 = _dot(ac, bp)
     d5 = _dot(ab, cp)
     d6 = _dot(ac, cp)
-    vc = d1 * d4 - d3 * d2
-    vb = d5 * d2 - d1 * d6
-    va = d3 * d6 - d5 * d4
-
-    in_a = (d1 <= 0) & (d2 <= 0)
-    in_b = (d3 >= 0) & (d4 <= d3)
-    in_ab = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
-    in_c = (d6 >= 0) & (d5 <= d6)
-    in_ac = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
-    in_bc = (va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0)
+    va, vb, vc, (in_a, in_b, in_ab, in_c, in_ac, in_bc) = _voronoi(d1, d2, d3, d4, d5, d6)
 
     den = va + vb + vc
     v = _safe_div(vb, den)
@@ -208,15 +214,7 @@ def nearest_search_soa(p, t):
     d4 = d2 - abac
     d5 = d1 - abac
     d6 = d2 - acac
-    vc = d1 * d4 - d3 * d2
-    vb = d5 * d2 - d1 * d6
-    va = d3 * d6 - d5 * d4
-    in_a = (d1 <= 0) & (d2 <= 0)
-    in_b = (d3 >= 0) & (d4 <= d3)
-    in_ab = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
-    in_c = (d6 >= 0) & (d5 <= d6)
-    in_ac = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
-    in_bc = (va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0)
+    va, vb, vc, (in_a, in_b, in_ab, in_c, in_ac, in_bc) = _voronoi(d1, d2, d3, d4, d5, d6)
     t_bc = (d4 - d3) * ibc
     # q = a + v ab + w ac, regions applied in reverse priority (A wins ties)
     v, w = vb * inn, vc * inn
