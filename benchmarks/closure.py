@@ -16,6 +16,7 @@ import numpy as np
 
 import jaxvalve  # noqa: F401  (float64)
 from jaxvalve import valve as V
+from jaxvalve.bending import Bending
 from jaxvalve.leaflet_mesh import mesh_leaflet
 from jaxvalve.scene import Scene
 
@@ -26,6 +27,8 @@ def main(argv=None):
     ap.add_argument("--steps", type=int, default=20_000)
     ap.add_argument("--solver", default="fire", choices=["fire", "newton", "paper"])
     ap.add_argument("--models", default="mass-spring,stvk,neo-hookean,gent")
+    ap.add_argument("--bending", type=float, default=None,
+                    help="bending stiffness as a multiple of the plate modulus (default off)")
     args = ap.parse_args(argv)
     print(f"{'model':12s} {'tris':>6s} {'result':>18s} {'steps':>7s} {'residual':>9s} "
           f"{'first s':>8s} {'again s':>8s}")
@@ -36,7 +39,8 @@ def main(argv=None):
         for _ in range(2):
             t0 = time.perf_counter()
             sol = V.close(valve, sc.material(), sc.pressure, solver=sc.make_solver(),
-                          contact=sc.contact_law(), throw=False)
+                          contact=sc.contact_law(), throw=False,
+                          bending=None if args.bending is None else Bending(args.bending))
             jax.block_until_ready(sol.x)
             times.append(time.perf_counter() - t0)
         from jaxvalve.solvers import RESULTS

@@ -13,6 +13,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
+from . import bending
 from .materials import SpringGeometry
 from .mesh import local_reference, reference_areas, right_cauchy_green
 from .problem import Params, Problem
@@ -30,6 +31,7 @@ class Reference:
     node_area: Any
     cot: Any
     springs: Any = None
+    hinge_w: Any = None
 
 
 def _scatter_nodes(values, triangles, n):
@@ -66,7 +68,11 @@ def prepare(problem: Problem, params: Params) -> Reference:
         else:  # per spring (M, 3): the angle between spring and fibres
             cos2 = jnp.broadcast_to(jnp.cos(ang) ** 2, unit.shape[:2])
         springs = SpringGeometry(unit=unit, cos2=cos2)
-    return Reference(Dm_inv=Dm_inv, area=area, node_area=node_area, cot=cot, springs=springs)
+    hinge_w = None
+    if params.bending is not None and problem.hinges is not None:
+        hinge_w = bending.hinge_weights(params.ref, problem.hinges)
+    return Reference(Dm_inv=Dm_inv, area=area, node_area=node_area, cot=cot, springs=springs,
+                     hinge_w=hinge_w)
 
 
 def element_energies(x, problem: Problem, params: Params, ref: Reference):
@@ -101,8 +107,11 @@ def pressure_force(x, triangles, pressure):
 
 
 def conservative_energy(x, problem, params, ref, nbrs=None):
-    """Strain energy plus the smooth contact energy (N mm)."""
+    """Strain energy plus bending (when asked for) plus the smooth contact energy (N mm)."""
     e = elastic_energy(x, problem, params, ref)
+    if ref.hinge_w is not None:
+        D = params.bending.scale * bending.plate_modulus(params.material, params.thickness)
+        e = e + bending.bending_energy(x, problem.hinges, ref.hinge_w, D)
     c = params.contact
     if c is not None and hasattr(c, "energy"):
         e = e + c.energy(x, problem.triangles, nbrs, ref.node_area)
@@ -180,6 +189,14 @@ def stiffness_bound(x, problem, params, ref):
     emax = jnp.max(jnp.linalg.norm(xt - jnp.roll(xt, 1, axis=1), axis=-1), axis=-1)
     per_tri = lam + jnp.abs(params.pressure) * emax / 3.0
     bound = _scatter_nodes(jnp.broadcast_to(per_tri[:, None], tri.shape), tri, problem.n_nodes)
+    if ref.hinge_w is not None:
+        # hinge stiffness ~ D w_e / (altitude)^2 on each of its four nodes
+        D = params.bending.scale * bending.plate_modulus(params.material.stiffest(),
+                                                         params.thickness)
+        alt2 = (2.0 * ref.area / emax) ** 2
+        per = 4.0 * D * ref.hinge_w / jnp.min(alt2)
+        hv = jnp.broadcast_to(per[:, None], problem.hinges.shape)
+        bound = bound + jnp.zeros(problem.n_nodes, bound.dtype).at[problem.hinges].add(hv)
     c = params.contact
     if c is not None and hasattr(c, "energy"):
         # penalty stiffness k a_i on the node and its reaction on the opposing triangle

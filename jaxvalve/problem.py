@@ -35,11 +35,14 @@ class Problem:
     triangles (M, 3) int32, oriented: pressure acts along +n, n ~ (x1-x0) x (x2-x0).
     fixed (N,) bool: nodes held at their initial position (sutured edge, clamp).
     body (N,) int32: body id per node (leaflet index); contact acts between bodies.
+    hinges (K, 4) int32: interior edges (i, j, k, l) for the bending energy
+    (`jaxvalve.bending.hinges`), or None.
     """
 
     triangles: Any
     fixed: Any
     body: Any
+    hinges: Any = None
 
     @property
     def n_nodes(self):
@@ -61,6 +64,7 @@ class Params:
     fibre_angle: radians, fibre direction in the 2D template frame (scalar), or per
         triangle edge (M, 3); used by anisotropic spring models only.
     contact: None, `SmoothContact` or `PaperContact`.
+    bending: None (a pure membrane, as DESIGN.md) or `jaxvalve.bending.Bending`.
     """
 
     ref: Any
@@ -69,6 +73,7 @@ class Params:
     pressure: Any = 0.0
     fibre_angle: Any = 0.0
     contact: Any = None
+    bending: Any = None
 
     def replace(self, **kw):
         return dataclasses.replace(self, **kw)
@@ -106,7 +111,9 @@ def make_problem(ref, triangles, fixed=None, body=None):
     if np.any(body[tri[:, 0]] != body[tri[:, 1]]) or np.any(body[tri[:, 0]] != body[tri[:, 2]]):
         raise MeshError("a triangle joins nodes of different bodies; body ids must be constant "
                         "on each triangle")
-    prob = Problem(jnp.asarray(tri), jnp.asarray(fixed_mask), jnp.asarray(body))
+    from .bending import hinges
+    prob = Problem(jnp.asarray(tri), jnp.asarray(fixed_mask), jnp.asarray(body),
+                   jnp.asarray(hinges(tri)))
     return prob, jnp.asarray(ref)
 
 
@@ -126,4 +133,6 @@ def validate_params(params: Params):
     params.material.validate()
     if params.contact is not None and hasattr(params.contact, "validate"):
         params.contact.validate()
+    if params.bending is not None:
+        params.bending.validate()
     return params

@@ -40,6 +40,8 @@ class Scene:
     E1/E2/E3 (MPa; the mass-spring piecewise modulus 3.3; default: linear, E everywhere),
     fibre_angle (degrees, template frame; anisotropic mass-spring only).
     pressure, he_pressure: the closing load and the effective-height load (mmHg).
+    bending: plate bending stiffness as a multiple of the physical D = E H^3 / (12 (1 -
+    nu^2)) (`jaxvalve.bending`); 0 gives the pure membrane of DESIGN.md.
     """
 
     r: float = BENCHMARK_TEMPLATE.r
@@ -65,6 +67,7 @@ class Scene:
     rtol: float = 1e-6
     max_steps: int = 50_000
     g_c: float = 0.5
+    bending: float = 1.0
 
     def __post_init__(self):
         if self.model not in MODELS:
@@ -81,6 +84,10 @@ class Scene:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ParameterError(f"{name} must be a finite pressure > 0 mmHg; got {v!r}")
+        if not (isinstance(self.bending, (int, float)) and math.isfinite(self.bending)
+                and self.bending >= 0):
+            raise ParameterError(f"bending must be a finite multiple >= 0 of the plate modulus; "
+                                 f"got {self.bending!r}")
         if not (isinstance(self.max_steps, int) and self.max_steps > 0):
             raise ParameterError(f"max_steps must be a positive integer; got {self.max_steps!r}")
         self.template()  # validates r, a, b, alpha
@@ -125,7 +132,13 @@ class Scene:
 
     def contact_law(self):
         from .contact import PaperContact, SmoothContact
-        return SmoothContact(one_sided=True) if self.contact == "smooth" else PaperContact()
+        return (SmoothContact(one_sided=True, soft_min=True) if self.contact == "smooth"
+                else PaperContact())
+
+    def bending_law(self):
+        """`Bending` (or None for a pure membrane, bending = 0)."""
+        from .bending import Bending
+        return Bending(float(self.bending)) if self.bending > 0 else None
 
     def make_solver(self):
         from .solvers import FIRE, FixedPoint, NewtonKrylov

@@ -65,11 +65,13 @@ class Valve:
         return slice(i * n, (i + 1) * n)
 
     def params(self, material, pressure_mmhg=80.0, contact=None, thickness=0.3,
-               fibre_angle=0.0):
+               fibre_angle=0.0, bending=None):
         """`Params` for this valve (pressure in mmHg)."""
         return Params(ref=self.ref, material=material, thickness=thickness,
                       pressure=mmhg(pressure_mmhg), fibre_angle=fibre_angle,
-                      contact=SmoothContact(one_sided=True) if contact is None else contact)
+                      contact=(SmoothContact(one_sided=True, soft_min=True) if contact is None
+                               else contact),
+                      bending=bending)
 
 
 def build_valve(root, lmesh: LeafletMesh) -> Valve:
@@ -113,9 +115,9 @@ def settle(valve: Valve, material, *, solver=None, thickness=0.3) -> Valve:
 
 
 def close(valve: Valve, material, pressure_mmhg=80.0, *, solver=None, contact=None,
-          thickness=0.3, fibre_angle=0.0, x0=None, throw=True):
+          thickness=0.3, fibre_angle=0.0, bending=None, x0=None, throw=True):
     """Equilibrium of the valve under ``pressure_mmhg`` from ``x0`` (default x_start)."""
-    params = valve.params(material, pressure_mmhg, contact, thickness, fibre_angle)
+    params = valve.params(material, pressure_mmhg, contact, thickness, fibre_angle, bending)
     x0 = valve.x_start if x0 is None else x0
     return equilibrium.solve(valve.problem, params, jnp.asarray(x0), solver, throw=throw)
 

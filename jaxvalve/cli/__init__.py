@@ -4,9 +4,9 @@ from __future__ import annotations
 import argparse
 import sys
 
-from . import membrane
+from . import membrane, simulate
 
-SUBCOMMANDS = {"membrane": membrane}
+SUBCOMMANDS = {"membrane": membrane, "simulate": simulate}
 
 
 def main(argv=None) -> int:

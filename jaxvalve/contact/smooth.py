@@ -82,6 +82,33 @@ def pair_distances(x, triangles, nbrs: NeighbourList, signed: bool = False):
     return d, side.reshape(-1)
 
 
+def soft_distance(x, triangles, nbrs: NeighbourList, dmin, softness, rows=None):
+    """Soft-min distance (R,) per group of `nbrs` (see `SmoothContact`), differentiable.
+
+    dmin: unused (kept for the call signature); the exponentials are shifted by the
+    group minimum, which cancels exactly.  rows: static number
+    of leading rows to visit (all rows in use must lie in it).  Groups with no candidate
+    get +inf."""
+    R, W = nbrs.cand.shape
+    b = R if rows is None else rows
+    cand = nbrs.cand[:b]
+    valid = cand < triangles.shape[0]
+    grp = nbrs.row_group[:b]
+    node = jnp.clip(nbrs.group_node[grp], 0, x.shape[0] - 1)
+    v = triangles[jnp.where(valid, cand, 0)]                          # (b, W, 3)
+    idx = jnp.stack([jnp.broadcast_to(node[:, None], valid.shape), v[..., 0], v[..., 1],
+                     v[..., 2]]).reshape(4, -1)
+    d = _distance_rows(x, idx).reshape(valid.shape)
+    dd = jax.lax.stop_gradient(jnp.where(valid, d, jnp.inf))
+    shift = jax.ops.segment_min(jnp.min(dd, 1), grp, num_segments=R)[grp][:, None]
+    z = jnp.where(valid, -(d - jnp.where(jnp.isfinite(shift), shift, 0.0)) / softness, -jnp.inf)
+    w = jnp.where(valid, jnp.exp(z), 0.0)            # <= 1; the nearest has w = 1
+    num = jax.ops.segment_sum(jnp.sum(w * d, 1), grp, num_segments=R)
+    den = jax.ops.segment_sum(jnp.sum(w, 1), grp, num_segments=R)
+    ok = den > 0
+    return jnp.where(ok, num / jnp.where(ok, den, 1.0), jnp.inf)
+
+
 CHUNK_ROWS = 256  # rows (x ROW_WIDTH slots) per loop iteration of the nearest search
 
 
@@ -168,7 +195,8 @@ def _distance_rows_jvp(primals, tangents):
 
 
 @functools.partial(jax.tree_util.register_dataclass,
-                   data_fields=["stiffness", "gap"], meta_fields=["one_sided"])
+                   data_fields=["stiffness", "gap", "softness"],
+                   meta_fields=["one_sided", "soft_min"])
 @dataclasses.dataclass(frozen=True)
 class SmoothContact:
     """C1 penalty contact: pressure k (g0 - d)_+ between sheets (see module docstring).
@@ -181,19 +209,33 @@ class SmoothContact:
     that crossed the other sheet is then pushed back, never further through.  Use it when
     the bodies face each other with their +n sides, as valve leaflets do (their normals
     point from the aortic to the ventricular side, and their ventricular sides coapt).
+    soft_min: (static) replace the distance to the nearest triangle of the other body by
+    the soft minimum over its candidate triangles T (`soft_distance`),
+        d_soft = sum_T w_T d_T / sum_T w_T,   w_T = exp(-(d_T - min_T d_T) / softness),
+    which equals the nearest distance where candidates tie (a node above a shared edge or
+    vertex of a flat sheet: no double counting) and is C-infinity where the nearest
+    triangle switches.  The hard minimum has a kink there; a node pressed into a crease
+    of the other leaflet (two faces at equal distance) then has no point of zero force
+    and no solver can drive the residual down.  softness: mm, traced (default 0.01).
+    Over a flat sheet the soft minimum exceeds the true distance by at most ~softness / e
+    near edges (the weights of the neighbours of the nearest triangle).
     """
 
     stiffness: float | jax.Array = 1.0
     gap: float | jax.Array = 0.2
+    softness: float | jax.Array = 0.01
     one_sided: bool = False
+    soft_min: bool = False
 
     def validate(self) -> "SmoothContact":
         """Host-side check; raises `ParameterError` naming the parameter and its range."""
-        for name, hi in (("stiffness", math.inf), ("gap", 0.5)):
+        for name, hi in (("stiffness", math.inf), ("gap", 0.5), ("softness", 0.1)):
             v = float(getattr(self, name))
             if not math.isfinite(v) or v <= 0 or v >= hi:
                 rng = "> 0 and finite" if hi == math.inf else f"in (0, {hi}) mm"
                 unit = "MPa/mm" if name == "stiffness" else "mm"
+                if name == "softness" and not self.soft_min:
+                    continue
                 raise ParameterError(f"SmoothContact.{name} must be {rng}; got {v} {unit}"
                                      + (" (g0 must stay below the coaptation threshold "
                                         "g_c = 0.5 mm)" if name == "gap" else ""))
@@ -213,6 +255,8 @@ class SmoothContact:
         recomputed differentiably (exact first and second derivatives, `_distance_rows`)
         on the shortest of a few static prefixes that holds them (`lax.switch`)."""
         tri, side, found, dist = nearest_triangles(x, triangles, nbrs, self.one_sided)
+        if self.soft_min:
+            return self._energy_soft(x, triangles, nbrs, node_area, side, found, dist)
         R = found.shape[0]
         s = side * dist if self.one_sided else dist
         gap = jax.lax.stop_gradient(self.gap)
@@ -226,6 +270,22 @@ class SmoothContact:
         return jax.lax.switch(bucket_index(sizes, n_live), branches, x, triangles,
                               tri[live], side[live], jnp.arange(R) < n_live,
                               nbrs.group_node[live], node_area)
+
+    def _energy_soft(self, x, triangles, nbrs, node_area, side, found, dist):
+        """Energy with the soft-min distance over every candidate of each group; the
+        rows in use are processed on the shortest static prefix that holds them."""
+        R = nbrs.cand.shape[0]
+        sizes = bucket_sizes(R, smallest=64, most=3, factor=4)
+
+        def branch(b, x):
+            d = soft_distance(x, triangles, nbrs, dist, self.softness, rows=b)
+            s = side * d if self.one_sided else d
+            s = jnp.minimum(jnp.where(found, s, self.gap), self.gap)
+            node = jnp.clip(nbrs.group_node, 0, x.shape[0] - 1)
+            return 0.5 * jnp.sum(jnp.where(found, node_area[node], 0.0) * self.potential(s))
+
+        branches = [functools.partial(branch, b) for b in sizes]
+        return jax.lax.switch(bucket_index(sizes, nbrs.n_rows), branches, x)
 
     def _energy_groups(self, b, x, triangles, tri, side, live, group_node, node_area):
         node = jnp.clip(group_node[:b], 0, x.shape[0] - 1)
