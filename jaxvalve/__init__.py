@@ -8,6 +8,9 @@ jax.config.update("jax_enable_x64", True)
 
 from .equilibrium import solve  # noqa: E402
 from .problem import Params, Problem, make_problem, mmhg  # noqa: E402
+from .scene import Scene  # noqa: E402
+from .simulation import SimulationResult, simulate  # noqa: E402
 
 __version__ = "0.1.0"
-__all__ = ["solve", "Params", "Problem", "make_problem", "mmhg", "__version__"]
+__all__ = ["solve", "Params", "Problem", "make_problem", "mmhg", "Scene", "simulate",
+           "SimulationResult", "__version__"]

@@ -111,7 +111,7 @@ def conservative_energy(x, problem, params, ref, nbrs=None):
     e = elastic_energy(x, problem, params, ref)
     if ref.hinge_w is not None:
         D = params.bending.scale * bending.plate_modulus(params.material, params.thickness)
-        e = e + bending.bending_energy(x, problem.hinges, ref.hinge_w, D)
+        e = e + bending.bending_energy(x, problem.hinges, ref.hinge_w, D, problem.triangles)
     c = params.contact
     if c is not None and hasattr(c, "energy"):
         e = e + c.energy(x, problem.triangles, nbrs, ref.node_area)
@@ -195,8 +195,8 @@ def stiffness_bound(x, problem, params, ref):
                                                          params.thickness)
         alt2 = (2.0 * ref.area / emax) ** 2
         per = 4.0 * D * ref.hinge_w / jnp.min(alt2)
-        hv = jnp.broadcast_to(per[:, None], problem.hinges.shape)
-        bound = bound + jnp.zeros(problem.n_nodes, bound.dtype).at[problem.hinges].add(hv)
+        hv = jnp.broadcast_to(per[:, None], problem.hinges[:, :4].shape)
+        bound = bound + jnp.zeros(problem.n_nodes, bound.dtype).at[problem.hinges[:, :4]].add(hv)
     c = params.contact
     if c is not None and hasattr(c, "energy"):
         # penalty stiffness k a_i on the node and its reaction on the opposing triangle

@@ -1,4 +1,4 @@
-"""Figures of a `jaxvalve.simulate.SimulationResult` (matplotlib, imported lazily).
+"""Figures of a `jaxvalve.simulation.SimulationResult` (matplotlib, imported lazily).
 
 Each function draws into ``ax`` when given (``plot_valve`` needs a 3D axes) and otherwise
 makes a new pyplot figure (the Agg backend is chosen when there is no display).  Each

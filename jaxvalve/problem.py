@@ -35,7 +35,7 @@ class Problem:
     triangles (M, 3) int32, oriented: pressure acts along +n, n ~ (x1-x0) x (x2-x0).
     fixed (N,) bool: nodes held at their initial position (sutured edge, clamp).
     body (N,) int32: body id per node (leaflet index); contact acts between bodies.
-    hinges (K, 4) int32: interior edges (i, j, k, l) for the bending energy
+    hinges (K, 6) int32: interior edges (i, j, k, l, t1, t2) for the bending energy
     (`jaxvalve.bending.hinges`), or None.
     """
 

@@ -1,6 +1,6 @@
 """Outputs of a simulation: ``metrics.json``, one ``.vtu`` per leaflet and PNG figures.
 
-`metrics_json(result)` is the JSON-ready record of a `jaxvalve.simulate.SimulationResult`
+`metrics_json(result)` is the JSON-ready record of a `jaxvalve.simulation.SimulationResult`
 (NaN / inf written as null); `write_outputs(result, out_dir)` writes the files.  Units: mm,
 mm^2, mmHg, MPa, degrees, seconds; NCCA as a fraction (``summary.NCCA_pct`` in %).
 """

@@ -17,7 +17,7 @@ import jaxvalve
 from jaxvalve.cli import main
 from jaxvalve.report import metrics_json, nodal_average, principal_stretches
 from jaxvalve.scene import Scene
-import jaxvalve.simulate as sim_mod
+import jaxvalve.simulation as sim_mod
 
 real = sim_mod.simulate
 

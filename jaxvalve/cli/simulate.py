@@ -136,7 +136,7 @@ def _table(result):
 def run(args) -> int:
     from ..errors import ConvergenceError, JaxvalveError
     from ..report import metrics_json, write_outputs
-    from ..simulate import simulate
+    from ..simulation import simulate
 
     stream = sys.stderr if args.json else sys.stdout
 

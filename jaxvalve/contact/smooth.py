@@ -82,18 +82,25 @@ def pair_distances(x, triangles, nbrs: NeighbourList, signed: bool = False):
     return d, side.reshape(-1)
 
 
-def soft_distance(x, triangles, nbrs: NeighbourList, dmin, softness, rows=None):
-    """Soft-min distance (R,) per group of `nbrs` (see `SmoothContact`), differentiable.
+def soft_distance(x, triangles, nbrs: NeighbourList, live, rows=None, *, softness):
+    """Soft-min distance (R,) per group of `nbrs` (see `SmoothContact`), differentiable:
+    sum_T w_T d_T / sum_T w_T over the group's candidate triangles T, with
+    w_T = exp(-(d_T - min d) / softness).
 
-    dmin: unused (kept for the call signature); the exponentials are shifted by the
-    group minimum, which cancels exactly.  rows: static number
-    of leading rows to visit (all rows in use must lie in it).  Groups with no candidate
-    get +inf."""
+    live (R,) bool: the groups wanted; the others get +inf.  Their rows are gathered to
+    the front and the first ``rows`` of them (static; default all) are visited, so the
+    caller must pass a ``rows`` that holds every row of the live groups."""
     R, W = nbrs.cand.shape
     b = R if rows is None else rows
-    cand = nbrs.cand[:b]
+    in_use = jnp.arange(R) < nbrs.n_rows
+    row_live = live[nbrs.row_group] & in_use
+    rank = jnp.cumsum(row_live, dtype=jnp.int32) - 1
+    pick = jnp.full((R,), R - 1, jnp.int32).at[jnp.where(row_live, rank, R)].set(
+        jnp.arange(R, dtype=jnp.int32), mode="drop")[:b]
+    keep = jnp.arange(b) < jnp.sum(row_live)
+    cand = jnp.where(keep[:, None], nbrs.cand[pick], triangles.shape[0])
     valid = cand < triangles.shape[0]
-    grp = nbrs.row_group[:b]
+    grp = nbrs.row_group[pick]
     node = jnp.clip(nbrs.group_node[grp], 0, x.shape[0] - 1)
     v = triangles[jnp.where(valid, cand, 0)]                          # (b, W, 3)
     idx = jnp.stack([jnp.broadcast_to(node[:, None], valid.shape), v[..., 0], v[..., 1],
@@ -105,7 +112,7 @@ def soft_distance(x, triangles, nbrs: NeighbourList, dmin, softness, rows=None):
     w = jnp.where(valid, jnp.exp(z), 0.0)            # <= 1; the nearest has w = 1
     num = jax.ops.segment_sum(jnp.sum(w * d, 1), grp, num_segments=R)
     den = jax.ops.segment_sum(jnp.sum(w, 1), grp, num_segments=R)
-    ok = den > 0
+    ok = (den > 0) & live
     return jnp.where(ok, num / jnp.where(ok, den, 1.0), jnp.inf)
 
 
@@ -218,7 +225,9 @@ class SmoothContact:
     of the other leaflet (two faces at equal distance) then has no point of zero force
     and no solver can drive the residual down.  softness: mm, traced (default 0.01).
     Over a flat sheet the soft minimum exceeds the true distance by at most ~softness / e
-    near edges (the weights of the neighbours of the nearest triangle).
+    near edges (the weights of the neighbours of the nearest triangle).  With one_sided
+    the sign comes from the nearest triangle, so the signed gap side * d_soft jumps where a
+    node under a sheet passes its edge (a crossed node; not at equilibrium).
     """
 
     stiffness: float | jax.Array = 1.0
@@ -272,20 +281,25 @@ class SmoothContact:
                               nbrs.group_node[live], node_area)
 
     def _energy_soft(self, x, triangles, nbrs, node_area, side, found, dist):
-        """Energy with the soft-min distance over every candidate of each group; the
-        rows in use are processed on the shortest static prefix that holds them."""
+        """Energy with the soft-min distance over every candidate of each group.  The soft
+        minimum is >= the nearest distance, so only groups whose hard (signed) gap is
+        below g0 can carry energy: their rows are gathered and processed on the shortest
+        static prefix that holds them (`lax.switch`)."""
         R = nbrs.cand.shape[0]
-        sizes = bucket_sizes(R, smallest=64, most=3, factor=4)
+        s_hard = side * dist if self.one_sided else dist
+        live = found & (s_hard < jax.lax.stop_gradient(self.gap))
+        n_rows = jnp.sum(live[nbrs.row_group] & (jnp.arange(R) < nbrs.n_rows))
+        sizes = bucket_sizes(R, smallest=64, most=4, factor=2)
+        node = jnp.clip(nbrs.group_node, 0, x.shape[0] - 1)
 
         def branch(b, x):
-            d = soft_distance(x, triangles, nbrs, dist, self.softness, rows=b)
+            d = soft_distance(x, triangles, nbrs, live, b, softness=self.softness)
             s = side * d if self.one_sided else d
-            s = jnp.minimum(jnp.where(found, s, self.gap), self.gap)
-            node = jnp.clip(nbrs.group_node, 0, x.shape[0] - 1)
-            return 0.5 * jnp.sum(jnp.where(found, node_area[node], 0.0) * self.potential(s))
+            s = jnp.minimum(jnp.where(live, s, self.gap), self.gap)
+            return 0.5 * jnp.sum(jnp.where(live, node_area[node], 0.0) * self.potential(s))
 
         branches = [functools.partial(branch, b) for b in sizes]
-        return jax.lax.switch(bucket_index(sizes, nbrs.n_rows), branches, x)
+        return jax.lax.switch(bucket_index(sizes, n_rows), branches, x)
 
     def _energy_groups(self, b, x, triangles, tri, side, live, group_node, node_area):
         node = jnp.clip(group_node[:b], 0, x.shape[0] - 1)

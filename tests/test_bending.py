@@ -1,0 +1,273 @@
+"""Discrete hinge bending (jaxvalve.bending): topology, invariances, the plate limit on a
+cylinder, an exact fold, forces vs finite differences, the plate modulus, validation and
+the wiring into the membrane assembly."""
+import numpy as np
+import pytest
+import jax
+import jax.numpy as jnp
+
+from jaxvalve import assembly, bending as B
+from jaxvalve.errors import ParameterError
+from jaxvalve.materials import Gent, MassSpring, NeoHookean, StVenantKirchhoff
+from jaxvalve.meshgen import disk, rectangle
+from jaxvalve.problem import Params, make_problem, validate_params
+
+_energy = jax.jit(B.bending_energy)     # with a 5th argument: the per-triangle-normal path
+_grad = jax.jit(jax.grad(B.bending_energy))
+
+
+def _lift(p):
+    return np.concatenate([p, np.zeros((len(p), 1))], axis=1)
+
+
+def _cylinder(p, R):
+    """Isometric map of the flat (X, Y) plane onto a cylinder of radius R (axis along Y)."""
+    X, Y = p[:, 0], p[:, 1]
+    return np.stack([R * np.sin(X / R), Y, R * (1.0 - np.cos(X / R))], axis=1)
+
+
+def _area(p, t):
+    e1, e2 = p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 0]]
+    return 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]).sum()
+
+
+def _rotation(rng):
+    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+    q = q * np.sign(np.diag(r))
+    return q if np.linalg.det(q) > 0 else -q
+
+
+def _setup(p, t):
+    h = B.hinges(t)
+    return jnp.asarray(h), B.hinge_weights(jnp.asarray(p), jnp.asarray(h))
+
+
+def _both(x, h, w, D, t):
+    """Energy by both code paths (hinge nodes / per-triangle normals); they must agree."""
+    x = jnp.asarray(x)
+    e = float(_energy(x, h, w, D))
+    if h.shape[1] >= 6:
+        e_t = float(_energy(x, h, w, D, jnp.asarray(t)))
+        assert e_t == pytest.approx(e, rel=1e-12, abs=1e-15)
+    return e
+
+
+# ----------------------------------------------------------------------------- topology
+@pytest.mark.parametrize("nx,ny", [(3, 2), (4, 4)])
+def test_hinges_are_the_interior_edges_with_consistent_orientation(nx, ny):
+    p, t = rectangle(2.0, 1.5, nx, ny)
+    h = B.hinges(t)
+    assert h.dtype == np.int32 and h.shape[1] in (4, 6)
+    # interior edges: those shared by two triangles; 3 nx ny - nx - ny for this mesh
+    und = np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1)
+    edges, count = np.unique(und, axis=0, return_counts=True)
+    interior = {tuple(e) for e in edges[count == 2]}
+    assert len(interior) == 3 * nx * ny - nx - ny
+    assert len(h) == len(interior)
+    assert {tuple(sorted(r)) for r in h[:, :2].tolist()} == interior     # each one once
+    rot = {}
+    for m, (a, b, c) in enumerate(t.tolist()):
+        for r in ((a, b, c), (b, c, a), (c, a, b)):
+            rot[r] = m
+    for row in h.tolist():
+        i, j, k, l = row[:4]
+        assert (i, j, k) in rot and (j, i, l) in rot      # oriented as in the input
+        assert k != l and len({i, j, k, l}) == 4
+        if len(row) >= 6:                                  # the two triangles' ids
+            assert rot[(i, j, k)] == row[4] and rot[(j, i, l)] == row[5]
+
+
+# ----------------------------------------------------------------------------- invariance
+def test_zero_on_flat_reference_and_rigid_motions_and_invariant_when_bent():
+    rng = np.random.default_rng(0)
+    p, t = rectangle(2.0, 1.5, 4, 3)
+    h, w = _setup(p, t)
+    x0 = _lift(p)
+    assert abs(_both(x0, h, w, 1.0, t)) < 1e-14
+    Q, c = _rotation(rng), rng.normal(size=3) * 5
+    assert abs(_both(x0 @ Q.T + c, h, w, 1.0, t)) < 1e-13
+    # a flat sheet rotated within its own plane and moved, lifted to z = 0
+    assert abs(_both(_lift(p @ np.array([[0.6, -0.8], [0.8, 0.6]]) + 3.0), h, w, 1.0, t)) < 1e-13
+    xb = x0 + 0.15 * rng.normal(size=x0.shape)
+    e = _both(xb, h, w, 0.7, t)
+    assert e > 1e-2
+    e_rot = _both(xb @ Q.T + c, h, w, 0.7, t)
+    assert abs(e_rot - e) < 1e-12 * e
+    # the energy depends on the mirror image neither (1 - n1 . n2 is even in the normals)
+    assert abs(_both(xb * np.array([1, 1, -1.0]), h, w, 0.7, t) - e) < 1e-12 * e
+
+
+# ----------------------------------------------------------------------------- plate limit
+def test_cylinder_structured_mesh_tends_to_plate_energy_and_scales_as_inverse_r_squared():
+    """E_b -> (D/2) A / R^2 on a cylinder of radius R (kappa = 1/R): the structured mesh
+    misses ~1/n of it (no hinge on the boundary), 3 % at 32 x 24 cells."""
+    p, t = rectangle(4.0, 3.0, 32, 24)
+    h, w = _setup(p, t)
+    A = _area(p, t)
+    ratios = []
+    for R in (3.0, 6.0):
+        e = _both(_cylinder(p, R), h, w, 1.0, t)
+        ratios.append(e / (0.5 * A / R**2))
+    assert all(abs(r - 1.0) < 0.05 for r in ratios), ratios
+    assert abs(ratios[0] / ratios[1] - 1.0) < 1e-2          # E ~ 1 / R^2
+    # D enters linearly
+    assert _both(_cylinder(p, 3.0), h, w, 2.5, t) == pytest.approx(2.5 * ratios[0] * 0.5 * A / 9,
+                                                                   rel=1e-12)
+
+
+def test_cylinder_delaunay_leaflet_mesh_tends_to_plate_energy():
+    from jaxvalve.leaflet_mesh import mesh_leaflet
+    from jaxvalve.template import Template
+    lm = mesh_leaflet(Template(12, 7.1, 15), h=0.5)
+    p, t = np.asarray(lm.points), np.asarray(lm.triangles)
+    h, w = _setup(p, t)
+    A = _area(p, t)
+    ratios = [_both(_cylinder(p, R), h, w, 1.0, t) / (0.5 * A / R**2) for R in (10.0, 20.0)]
+    assert all(abs(r - 1.0) < 0.05 for r in ratios), ratios
+    assert abs(ratios[0] / ratios[1] - 1.0) < 1e-2
+
+
+@pytest.mark.parametrize("theta", [0.05, 0.3, 2.0])
+def test_fold_along_a_grid_line_is_exact(theta):
+    """Folding a flat structured sheet by a dihedral angle theta along the grid line x = 1
+    bends exactly the ny hinges on it, each with w_e = hy^2 / (hx hy): E = D (1 - cos theta)
+    ly / hx, for any angle."""
+    lx, ly, nx, ny = 2.0, 1.5, 4, 3
+    p, t = rectangle(lx, ly, nx, ny)
+    h, w = _setup(p, t)
+    x = _lift(p)
+    right = p[:, 0] > 1.0
+    u = p[right, 0] - 1.0
+    x[right, 0] = 1.0 + u * np.cos(theta)
+    x[right, 2] = u * np.sin(theta)
+    D = 0.37
+    hx = lx / nx
+    assert _both(x, h, w, D, t) == pytest.approx(D * (1 - np.cos(theta)) * ly / hx, rel=1e-12)
+
+
+# ----------------------------------------------------------------------------- forces
+def test_gradient_matches_central_differences_and_forces_balance():
+    rng = np.random.default_rng(1)
+    p, t = rectangle(1.5, 1.0, 3, 2)
+    h, w = _setup(p, t)
+    x = _lift(p) + 0.2 * rng.normal(size=(len(p), 3))
+    D = 1.3
+    g = np.asarray(_grad(x, h, w, D))
+    eps = 1e-6
+    fd = np.zeros_like(g)
+    for a in range(x.shape[0]):
+        for c in range(3):
+            e = np.zeros_like(x)
+            e[a, c] = eps
+            fd[a, c] = (float(_energy(x + e, h, w, D)) - float(_energy(x - e, h, w, D))) / (2 * eps)
+    scale = np.max(np.abs(g))
+    assert scale > 1e-2
+    assert np.max(np.abs(g - fd)) < 1e-7 * scale
+    if h.shape[1] >= 6:                          # the per-triangle path has the same gradient
+        g_t = np.asarray(jax.grad(B.bending_energy)(x, h, w, D, jnp.asarray(t)))
+        assert np.max(np.abs(g_t - g)) < 1e-12 * scale
+    F = -g
+    total = np.sum(np.abs(F))
+    assert np.max(np.abs(F.sum(0))) < 1e-13 * total                       # no net force
+    assert np.max(np.abs(np.cross(np.asarray(x), F).sum(0))) < 1e-13 * total  # no net torque
+
+
+# ----------------------------------------------------------------------------- modulus
+def test_plate_modulus_per_material_and_its_gradient():
+    H = 0.4
+    assert float(B.plate_modulus(StVenantKirchhoff(E=2.0, nu=0.3), H)) == pytest.approx(
+        2.0 * H**3 / (12 * (1 - 0.09)), rel=1e-14)
+    for mat in (NeoHookean(mu=0.5), Gent(mu=0.5, Jm=2.3)):
+        assert float(B.plate_modulus(mat, H)) == pytest.approx(1.5 * H**3 / (12 * 0.75), rel=1e-14)
+    assert float(B.plate_modulus(MassSpring.linear(3.0), H)) == pytest.approx(
+        3.0 * H**3 / (12 * (1 - 1 / 9)), rel=1e-14)
+    dE = jax.grad(lambda E: B.plate_modulus(StVenantKirchhoff(E=E, nu=0.3), H))(2.0)
+    assert float(dE) == pytest.approx(H**3 / (12 * 0.91), rel=1e-14)
+    dH = jax.grad(lambda H: B.plate_modulus(StVenantKirchhoff(E=2.0, nu=0.3), H))(H)
+    assert float(dH) == pytest.approx(3 * 2.0 * H**2 / (12 * 0.91), rel=1e-14)
+    dmu = jax.grad(lambda mu: B.plate_modulus(NeoHookean(mu=mu), H))(0.5)
+    assert float(dmu) == pytest.approx(3 * H**3 / (12 * 0.75), rel=1e-14)
+    dE1 = jax.jit(jax.grad(lambda E: B.plate_modulus(MassSpring.linear(E), H)))(3.0)
+    assert float(dE1) == pytest.approx(H**3 / (12 * (1 - 1 / 9)), rel=1e-14)
+
+
+# ----------------------------------------------------------------------------- validation
+def _disk_problem():
+    p, t, edge = disk(1.0, 2)
+    prob, ref = make_problem(p, t, fixed=edge)
+    return p, prob, ref
+
+
+@pytest.mark.parametrize("scale", [-1.0, float("nan"), float("inf")])
+def test_bending_validate_rejects_bad_scale(scale):
+    with pytest.raises(ParameterError, match="bending"):
+        B.Bending(scale).validate()
+    _, _, ref = _disk_problem()
+    with pytest.raises(ParameterError, match="bending"):
+        validate_params(Params(ref=ref, material=StVenantKirchhoff(), bending=B.Bending(scale)))
+
+
+def test_bending_validate_accepts_zero_and_positive_and_tracers():
+    assert B.Bending(0.0).validate().scale == 0.0
+    B.Bending(3.0).validate()
+    jax.jit(lambda s: B.Bending(s).validate().scale)(1.0)        # tracers are not checked
+    _, _, ref = _disk_problem()
+    validate_params(Params(ref=ref, material=StVenantKirchhoff(), bending=B.Bending(1.0)))
+
+
+# ----------------------------------------------------------------------------- assembly
+def test_assembly_zero_scale_equals_membrane_and_unit_scale_adds_bending_force():
+    """Bending(0) gives the membrane residual (bending=None); Bending(s) adds -s D grad E_b
+    at the free nodes; the stiffness bound grows with the hinge term."""
+    rng = np.random.default_rng(2)
+    p, prob, ref = _disk_problem()
+    assert prob.hinges is not None and prob.hinges.shape[0] > 0
+    r = np.linalg.norm(p, axis=1)
+    x = _lift(p) + 0.02 * rng.normal(size=(len(p), 3))
+    x[:, 2] += 0.3 * (1 - r**2)
+    x[np.asarray(prob.fixed)] = _lift(p)[np.asarray(prob.fixed)]
+    x = jnp.asarray(x)
+    mat = StVenantKirchhoff(E=1.0, nu=0.45)
+    base = Params(ref=ref, material=mat, thickness=0.3, pressure=0.002)
+
+    @jax.jit
+    def membrane(params):                       # bending=None
+        g = assembly.prepare(prob, params)
+        return (assembly.residual(x, prob, params, g),
+                assembly.conservative_energy(x, prob, params, g))
+
+    @jax.jit
+    def parts(params):                          # bending=Bending(scale): one compilation
+        g = assembly.prepare(prob, params)
+        return (assembly.residual(x, prob, params, g), assembly.stiffness_bound(x, prob, params, g),
+                assembly.conservative_energy(x, prob, params, g))
+
+    def res(params):
+        r, b, e = parts(params)
+        return np.asarray(r), np.asarray(b), float(e)
+
+    r0, e0 = (np.asarray(v) for v in membrane(base))
+    r_zero, b0, e_zero = res(base.replace(bending=B.Bending(0.0)))
+    scale = np.max(np.abs(r0))
+    assert scale > 1e-4
+    assert np.max(np.abs(r_zero - r0)) <= 1e-14 * scale
+    assert e_zero == pytest.approx(float(e0), rel=1e-14)
+
+    s = 50.0
+    r_s, b_s, e_s = res(base.replace(bending=B.Bending(s)))
+    D = s * float(B.plate_modulus(mat, 0.3))
+    hw = B.hinge_weights(ref, prob.hinges)
+    e_b = float(B.bending_energy(x, prob.hinges[:, :4], hw, D))
+    f_b = -np.asarray(jax.grad(B.bending_energy)(x, prob.hinges[:, :4], hw, D))
+    f_b[np.asarray(prob.fixed)] = 0.0
+    assert e_b > 0 and e_s == pytest.approx(e0 + e_b, rel=1e-12)
+    assert np.max(np.abs(f_b)) > 1e-2 * scale
+    assert np.max(np.abs(r_s - (r0 + f_b))) < 1e-12 * np.max(np.abs(r_s))
+    assert np.all(b_s >= b0) and np.any(b_s > b0)
+    # the bound bounds the stiffness: lambda_max of the Hessian of the conservative energy
+    bent = base.replace(bending=B.Bending(s))
+    K = jax.jit(jax.hessian(lambda y: assembly.conservative_energy(
+        y, prob, bent, assembly.prepare(prob, bent))))(x)
+    n = x.size
+    lam = np.max(np.abs(np.linalg.eigvalsh(np.asarray(K).reshape(n, n))))
+    assert lam <= np.max(b_s)
