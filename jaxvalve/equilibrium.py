@@ -84,14 +84,14 @@ def _make_args(problem, params, x0, nbrs, solver, skin):
              f0=jnp.asarray(1.0, x0.dtype), skin=jnp.asarray(skin, x0.dtype),
              max_move=jnp.asarray(0.5 * skin if has_contact else jnp.inf, x0.dtype))
     system = make_system(problem, params)
-    a = system.update(x0, a)
     if params.contact is not None and hasattr(params.contact, "force"):
         # the paper's law needs the fixed-point step delta (tentative positions)
         d = (solver.delta if isinstance(solver, FixedPoint) and solver.delta is not None
              else 1.0 / jnp.max(jnp.where(problem.free, system.bound(x0, a), 0.0)))
         a = dict(a, delta=jnp.asarray(d, x0.dtype))
-    f0 = jnp.linalg.norm(system.force(x0, a))
-    a = dict(a, f0=jnp.where(f0 > 0, f0, 1.0))
+    # f0 (the residual scale at P = 0) is set from the first solver's initial force
+    # (`iterate`), so the force is not traced once more here
+    a = dict(a, f0=jnp.asarray(-1.0, x0.dtype))
     return system, a
 
 
@@ -101,11 +101,13 @@ def _run(solver, problem, params, x0, nbrs, skin):
     y = x0
     for warm in getattr(solver, "warm_start", None) or ():
         y, args, st, _, n = iterate(warm, system, y, args)
+        args = system.update(y, args)
         s = warm.stats(st)
         steps, evals, hvps = steps + n, evals + s["force_evals"], hvps + s["hvps"]
     y, args, st, result, n = iterate(solver, system, y, args)
     s = solver.stats(st)
-    res = relative_residual(system, y, args)
+    # every solver keeps the force at its current state: no extra traced force evaluation
+    res = relative_residual(system, y, args, st["F"] if "F" in st else None)
     stats = Stats(steps=steps + n, force_evals=evals + s["force_evals"], hvps=hvps + s["hvps"],
                   residual=res)
     return y, result, stats, args
@@ -179,7 +181,8 @@ def solve(problem: Problem, params: Params, x0, solver=None, *, throw: bool = Tr
     solver: `NewtonKrylov()` (default), `FIRE()` or `FixedPoint()` (Algorithm 2.1).
     throw: raise `ConvergenceError` (with the residual) unless the solve converged; with
     throw=False the caller must inspect ``solution.result``.
-    nbrs, skin: contact pair list (built here when None) and its skin (mm).  A pair list
+    nbrs, skin: contact pair list (built here at x0 when None, else brought up to date
+    at x0) and its skin (mm).  A pair list
     that overflows inside the solve is rebuilt here at a larger capacity and the solve
     is repeated.  Differentiable in reverse
     mode with respect to params and the fixed positions in x0 (implicit adjoint).
@@ -195,6 +198,9 @@ def solve(problem: Problem, params: Params, x0, solver=None, *, throw: bool = Tr
     params = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype=x0.dtype), params)
     if params.contact is not None and nbrs is None:
         nbrs = init_pairs(params.contact, problem, x0, skin)
+    elif params.contact is not None:
+        # the solve assumes a pair list current at x0
+        nbrs = _contact.update(nbrs, x0, problem.triangles, problem.body, skin)
     for _ in range(6):
         y, result, stats, nb, _ = _solve_jit(solver, problem, params, x0, nbrs, float(skin))
         if isinstance(result, jax.core.Tracer) or int(result) != RESULTS.neighbour_overflow:

@@ -9,6 +9,26 @@ from . import membrane, simulate
 SUBCOMMANDS = {"membrane": membrane, "simulate": simulate}
 
 
+def enable_compilation_cache():
+    """Keep XLA executables between runs in ``$JAXVALVE_CACHE_DIR`` (default
+    ``~/.cache/jaxvalve/xla``; set it to ``off`` to disable): a second run of the same
+    scene shape then skips most of the compilation."""
+    import os
+    from pathlib import Path
+
+    path = os.environ.get("JAXVALVE_CACHE_DIR", str(Path.home() / ".cache" / "jaxvalve" / "xla"))
+    if path.lower() in ("", "off", "0", "none"):
+        return None
+    import jax
+    try:
+        Path(path).mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return None
+    jax.config.update("jax_compilation_cache_dir", path)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    return path
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
         prog="jaxvalve",
@@ -20,6 +40,7 @@ def main(argv=None) -> int:
     if args.command is None:
         parser.print_help()
         return 2
+    enable_compilation_cache()
     return SUBCOMMANDS[args.command].run(args)
 
 

@@ -113,9 +113,14 @@ def check_state(system, y, args, F):
 
 
 def iterate(solver, system, y0, args):
-    """Run ``solver`` from y0 in one `lax.while_loop`.  Returns (y, args, state, result, n)."""
-    args = system.update(y0, args)
+    """Run ``solver`` from y0 in one `lax.while_loop`.  Returns (y, args, state, result, n).
+    ``args`` must be current for y0 (its pair list built or updated there)."""
     state = solver.init(system, y0, args)
+    if "f0" in args:  # residual scale at P = 0: the first solver's initial force
+        F0 = state["F"] if "F" in state else system.force(y0, args)
+        f0 = jnp.linalg.norm(F0)
+        args = dict(args, f0=jnp.where(args["f0"] < 0, jnp.where(f0 > 0, f0, 1.0),
+                                       args["f0"]))
     done, result = solver.terminate(system, y0, args, state)
 
     def cond(c):

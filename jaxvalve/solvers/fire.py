@@ -32,13 +32,20 @@ class FIRE:
 
     def init(self, system, y, args):
         F = system.force(y, args)
-        return dict(F=F, v=jnp.zeros_like(y), m=self._mass(system, y, args),
+        # the masses are computed at the start of the first step (one traced copy of the
+        # stiffness bound, shared with the refresh)
+        return dict(F=F, v=jnp.zeros_like(y), m=jnp.ones((y.shape[0], 1), y.dtype),
                     dt=jnp.asarray(self.dt_start, y.dtype),
                     alpha=jnp.asarray(self.alpha_start, y.dtype),
                     npos=jnp.asarray(0), n=jnp.asarray(0), evals=jnp.asarray(1))
 
     def step(self, system, y, args, s):
-        F, v, m = s["F"], s["v"], s["m"]
+        F, v = s["F"], s["v"]
+        # masses: set at the first step, raised every `refresh` steps (stiffening)
+        floor = jnp.where(s["n"] == 0, 0.0, s["m"])
+        m = jax.lax.cond(s["n"] % self.refresh == 0,
+                         lambda: jnp.maximum(floor, self._mass(system, y, args)),
+                         lambda: s["m"])
         sq = jnp.sqrt(m)
         f = F / sq  # force in mass-scaled coordinates; v is the scaled velocity
         power = jnp.sum(f * v)
@@ -62,8 +69,6 @@ class FIRE:
         y = y + dy
         F = system.force(y, args)
         n = s["n"] + 1
-        m = jax.lax.cond(n % self.refresh == 0,
-                         lambda: jnp.maximum(m, self._mass(system, y, args)), lambda: m)
         return y, dict(F=F, v=v, m=m, dt=dt, alpha=alpha, npos=npos, n=n, evals=s["evals"] + 1)
 
     def terminate(self, system, y, args, s):
