@@ -289,7 +289,7 @@ class SmoothContact:
         s_hard = side * dist if self.one_sided else dist
         live = found & (s_hard < jax.lax.stop_gradient(self.gap))
         n_rows = jnp.sum(live[nbrs.row_group] & (jnp.arange(R) < nbrs.n_rows))
-        sizes = bucket_sizes(R, smallest=64, most=2, factor=4)
+        sizes = bucket_sizes(R, smallest=64, most=3, factor=4)
         node = jnp.clip(nbrs.group_node, 0, x.shape[0] - 1)
 
         def branch(b, x):
