@@ -91,21 +91,13 @@ def _unit(v):
     return jnp.where(ok, v / jnp.sqrt(jnp.where(ok, n2, 1.0)), 0.0)
 
 
-def bending_energy(x, hinge, weights, D, triangles=None):
-    """E_b (N mm) = D sum_e w_e (1 - n1 . n2) for positions x (N, 3).
-
-    With ``triangles`` (M, 3) the unit normals are computed once per triangle and read
-    per hinge (columns 4, 5 of `hinges`), which halves the work and the scatter of the
-    gradient; without it they are computed from the hinge's four nodes."""
-    if triangles is not None:
-        xt = x[triangles]
-        n = _unit(jnp.cross(xt[:, 1] - xt[:, 0], xt[:, 2] - xt[:, 0]))
-        n1, n2 = n[hinge[:, 4]], n[hinge[:, 5]]
-    else:
-        xi, xj, xk, xl = (x[hinge[:, c]] for c in range(4))
-        e = xj - xi
-        n1 = _unit(jnp.cross(e, xk - xi))
-        n2 = _unit(jnp.cross(xl - xi, e))
+def bending_energy(x, hinge, weights, D, triangles):
+    """E_b (N mm) = D sum_e w_e (1 - n1 . n2) for positions x (N, 3); the unit normals are
+    computed once per triangle of ``triangles`` (M, 3) and read per hinge (columns 4, 5 of
+    `hinges`)."""
+    xt = x[triangles]
+    n = _unit(jnp.cross(xt[:, 1] - xt[:, 0], xt[:, 2] - xt[:, 0]))
+    n1, n2 = n[hinge[:, 4]], n[hinge[:, 5]]
     return D * jnp.sum(weights * (1.0 - jnp.sum(n1 * n2, -1)))
 
 

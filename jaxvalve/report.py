@@ -7,37 +7,18 @@ mm^2, mmHg, MPa, degrees, seconds; NCCA as a fraction (``summary.NCCA_pct`` in %
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 
 import numpy as np
 
 from .errors import RootFileError
+from .jsonable import plain
 
 __all__ = ["metrics_json", "write_outputs", "principal_stretches", "nodal_average",
            "nodal_gap", "UNITS"]
 
 UNITS = {"length": "mm", "area": "mm^2", "pressure": "mmHg", "modulus": "MPa",
          "angle": "degrees", "time": "s", "ncca": "fraction (summary.NCCA_pct: %)"}
-
-
-def _plain(v):
-    """Nested numpy / tuples / dataclass-free data -> JSON types; NaN and inf -> None."""
-    if isinstance(v, dict):
-        return {str(k): _plain(a) for k, a in v.items()}
-    if isinstance(v, (tuple, list)):
-        return [_plain(a) for a in v]
-    if isinstance(v, np.ndarray):
-        return _plain(v.tolist())
-    if isinstance(v, (bool, np.bool_)):
-        return bool(v)
-    if isinstance(v, (int, np.integer)):
-        return int(v)
-    if isinstance(v, (float, np.floating)):
-        return float(v) if math.isfinite(v) else None
-    if v is None or isinstance(v, str):
-        return v
-    return str(v)
 
 
 def metrics_json(result) -> dict:
@@ -76,7 +57,7 @@ def metrics_json(result) -> dict:
         "metrics": result.metrics.as_dict(),
         "metrics_he": result.metrics_he.as_dict(),
     }
-    return _plain(out)
+    return plain(out)
 
 
 # ------------------------------------------------------------------------- point data

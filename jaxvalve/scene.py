@@ -134,9 +134,9 @@ class Scene:
         return read_root(surface, landmarks)
 
     def contact_law(self):
-        from .contact import PaperContact, SmoothContact
-        return (SmoothContact(one_sided=True, soft_min=True) if self.contact == "smooth"
-                else PaperContact())
+        from .contact import PaperContact
+        from .valve import valve_contact
+        return valve_contact() if self.contact == "smooth" else PaperContact()
 
     def bending_law(self):
         """`Bending` (or None for a pure membrane, bending = 0)."""

@@ -21,7 +21,13 @@ from .placement import place_leaflet
 from .problem import Params, Problem, make_problem, mmhg
 from .solvers import FIRE
 
-__all__ = ["Valve", "build_valve", "settle", "close"]
+__all__ = ["Valve", "build_valve", "settle", "close", "valve_contact"]
+
+
+def valve_contact():
+    """The valve's default contact law: smooth penalty, one-sided (leaflets coapt with their
+    +n, ventricular, sides), soft minimum over the candidate triangles."""
+    return SmoothContact(one_sided=True, soft_min=True)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -69,8 +75,7 @@ class Valve:
         """`Params` for this valve (pressure in mmHg)."""
         return Params(ref=self.ref, material=material, thickness=thickness,
                       pressure=mmhg(pressure_mmhg), fibre_angle=fibre_angle,
-                      contact=(SmoothContact(one_sided=True, soft_min=True) if contact is None
-                               else contact),
+                      contact=valve_contact() if contact is None else contact,
                       bending=bending)
 
 

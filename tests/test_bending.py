@@ -12,8 +12,21 @@ from jaxvalve.materials import Gent, MassSpring, NeoHookean, StVenantKirchhoff
 from jaxvalve.meshgen import disk, rectangle
 from jaxvalve.problem import Params, make_problem, validate_params
 
-_energy = jax.jit(B.bending_energy)     # with a 5th argument: the per-triangle-normal path
+_energy = jax.jit(B.bending_energy)
 _grad = jax.jit(jax.grad(B.bending_energy))
+
+
+def _unit(v):
+    return v / jnp.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def four_node_energy(x, hinge, w, D):
+    """Independent reference: the hinge energy from each hinge's four nodes (i, j, k, l),
+    normals (x_j - x_i) x (x_k - x_i) and (x_l - x_i) x (x_j - x_i)."""
+    xi, xj, xk, xl = (x[hinge[:, c]] for c in range(4))
+    e = xj - xi
+    n1, n2 = _unit(jnp.cross(e, xk - xi)), _unit(jnp.cross(xl - xi, e))
+    return D * jnp.sum(w * (1.0 - jnp.sum(n1 * n2, -1)))
 
 
 def _lift(p):
@@ -43,12 +56,11 @@ def _setup(p, t):
 
 
 def _both(x, h, w, D, t):
-    """Energy by both code paths (hinge nodes / per-triangle normals); they must agree."""
+    """Energy of the library (per-triangle normals) checked against the four-node
+    reference."""
     x = jnp.asarray(x)
-    e = float(_energy(x, h, w, D))
-    if h.shape[1] >= 6:
-        e_t = float(_energy(x, h, w, D, jnp.asarray(t)))
-        assert e_t == pytest.approx(e, rel=1e-12, abs=1e-15)
+    e = float(_energy(x, h, w, D, jnp.asarray(t)))
+    assert e == pytest.approx(float(four_node_energy(x, h, w, D)), rel=1e-12, abs=1e-15)
     return e
 
 
@@ -57,7 +69,7 @@ def _both(x, h, w, D, t):
 def test_hinges_are_the_interior_edges_with_consistent_orientation(nx, ny):
     p, t = rectangle(2.0, 1.5, nx, ny)
     h = B.hinges(t)
-    assert h.dtype == np.int32 and h.shape[1] in (4, 6)
+    assert h.dtype == np.int32 and h.shape[1] == 6
     # interior edges: those shared by two triangles; 3 nx ny - nx - ny for this mesh
     und = np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1)
     edges, count = np.unique(und, axis=0, return_counts=True)
@@ -152,20 +164,19 @@ def test_gradient_matches_central_differences_and_forces_balance():
     h, w = _setup(p, t)
     x = _lift(p) + 0.2 * rng.normal(size=(len(p), 3))
     D = 1.3
-    g = np.asarray(_grad(x, h, w, D))
+    g = np.asarray(_grad(x, h, w, D, jnp.asarray(t)))
     eps = 1e-6
     fd = np.zeros_like(g)
     for a in range(x.shape[0]):
         for c in range(3):
             e = np.zeros_like(x)
             e[a, c] = eps
-            fd[a, c] = (float(_energy(x + e, h, w, D)) - float(_energy(x - e, h, w, D))) / (2 * eps)
+            fd[a, c] = (float(_energy(x + e, h, w, D, t)) - float(_energy(x - e, h, w, D, t))) / (2 * eps)
     scale = np.max(np.abs(g))
     assert scale > 1e-2
     assert np.max(np.abs(g - fd)) < 1e-7 * scale
-    if h.shape[1] >= 6:                          # the per-triangle path has the same gradient
-        g_t = np.asarray(jax.grad(B.bending_energy)(x, h, w, D, jnp.asarray(t)))
-        assert np.max(np.abs(g_t - g)) < 1e-12 * scale
+    g_ref = np.asarray(jax.grad(four_node_energy)(x, h, w, D))   # the independent reference
+    assert np.max(np.abs(g_ref - g)) < 1e-12 * scale
     F = -g
     total = np.sum(np.abs(F))
     assert np.max(np.abs(F.sum(0))) < 1e-13 * total                       # no net force
@@ -257,8 +268,8 @@ def test_assembly_zero_scale_equals_membrane_and_unit_scale_adds_bending_force()
     r_s, b_s, e_s = res(base.replace(bending=B.Bending(s)))
     D = s * float(B.plate_modulus(mat, 0.3))
     hw = B.hinge_weights(ref, prob.hinges)
-    e_b = float(B.bending_energy(x, prob.hinges[:, :4], hw, D))
-    f_b = -np.asarray(jax.grad(B.bending_energy)(x, prob.hinges[:, :4], hw, D))
+    e_b = float(four_node_energy(x, prob.hinges, hw, D))
+    f_b = -np.asarray(jax.grad(four_node_energy)(x, prob.hinges, hw, D))
     f_b[np.asarray(prob.fixed)] = 0.0
     assert e_b > 0 and e_s == pytest.approx(e0 + e_b, rel=1e-12)
     assert np.max(np.abs(f_b)) > 1e-2 * scale

@@ -9,6 +9,7 @@ from scipy.optimize import minimize
 from jaxvalve.errors import NeighbourListOverflow, ParameterError
 from jaxvalve.contact.neighbours import ROW_WIDTH
 from jaxvalve.contact import (
+from sheets import combine, grid_sheet
     PaperContact, SmoothContact, brute_force_pairs, build_neighbours,
     build_neighbours_checked, check_overflow, closest_point_barycentric, default_capacity,
     needs_rebuild, node_areas, point_triangle_distance, point_triangle_distance_np,
@@ -20,37 +21,6 @@ MMHG = 1.33322e-4  # MPa
 
 
 # ------------------------------------------------------------------------ mesh helpers
-def grid_sheet(n, L, z=0.0, origin=(0.0, 0.0), jitter=0.0, rng=None, flip=False):
-    """Square sheet [0,L]^2 at height z, n x n cells, 2 triangles each; normal +z
-    (or -z when flip)."""
-    xs = np.linspace(0.0, L, n + 1)
-    X, Y = np.meshgrid(xs, xs, indexing="ij")
-    p = np.stack([X.ravel() + origin[0], Y.ravel() + origin[1], np.full(X.size, z)], 1)
-    if jitter:
-        p += jitter * (L / n) * rng.uniform(-1, 1, p.shape)
-    t = []
-    for i in range(n):
-        for j in range(n):
-            a = i * (n + 1) + j
-            b = a + n + 1
-            t += [[a, b, b + 1], [a, b + 1, a + 1]]
-    t = np.array(t, dtype=np.int32)
-    if flip:
-        t = t[:, [0, 2, 1]]
-    # (x, y, z) with b along +x then +y: (b-a) x (b+1-a) = +x cross (+x+y) = +z
-    return p, t
-
-
-def combine(*sheets):
-    xs, ts, bs, off = [], [], [], 0
-    for k, (p, t) in enumerate(sheets):
-        xs.append(p)
-        ts.append(t + off)
-        bs.append(np.full(len(p), k, np.int32))
-        off += len(p)
-    return np.concatenate(xs), np.concatenate(ts).astype(np.int32), np.concatenate(bs)
-
-
 def crumpled_bodies(rng, nb=2, n=7, L=3.5):
     sheets = []
     for k in range(nb):

@@ -11,33 +11,10 @@ import jax.numpy as jnp
 from jaxvalve.contact import SmoothContact, build_neighbours_checked, node_areas
 from jaxvalve.contact.smooth import nearest_triangles, soft_distance
 from jaxvalve.errors import ParameterError
+from sheets import combine, grid_sheet
 
 
 # ------------------------------------------------------------------------ helpers
-def grid_sheet(n, L, z=0.0, origin=(0.0, 0.0)):
-    """Square sheet [0, L]^2 at height z, n x n cells of 2 triangles; normal +z."""
-    xs = np.linspace(0.0, L, n + 1)
-    X, Y = np.meshgrid(xs, xs, indexing="ij")
-    p = np.stack([X.ravel() + origin[0], Y.ravel() + origin[1], np.full(X.size, z)], 1)
-    t = []
-    for i in range(n):
-        for j in range(n):
-            a = i * (n + 1) + j
-            b = a + n + 1
-            t += [[a, b, b + 1], [a, b + 1, a + 1]]
-    return p, np.array(t, dtype=np.int32)
-
-
-def combine(*sheets):
-    xs, ts, bs, off = [], [], [], 0
-    for k, (p, t) in enumerate(sheets):
-        xs.append(p)
-        ts.append(t + off)
-        bs.append(np.full(len(p), k, np.int32))
-        off += len(p)
-    return np.concatenate(xs), np.concatenate(ts).astype(np.int32), np.concatenate(bs)
-
-
 def lone_node(p):
     return np.asarray([p], float), np.zeros((0, 3), np.int32)
 

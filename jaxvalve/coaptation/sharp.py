@@ -90,20 +90,7 @@ class CoaptationResult:
 
     def as_dict(self, include_gap: bool = False) -> dict:
         """Plain floats / ints / lists (JSON-ready; NaN -> None).  `gap` only on request."""
-        def plain(v):
-            if isinstance(v, PairCurves):
-                return {f.name: plain(getattr(v, f.name)) for f in dataclasses.fields(v)}
-            if isinstance(v, (tuple, list)):
-                return [plain(a) for a in v]
-            if isinstance(v, np.ndarray):
-                return plain(v.tolist())
-            if isinstance(v, (bool, np.bool_)):
-                return bool(v)
-            if isinstance(v, (int, np.integer)):
-                return int(v)
-            if isinstance(v, (float, np.floating)):
-                return float(v) if math.isfinite(v) else None
-            return v
+        from ..jsonable import plain
         out = {}
         for f in dataclasses.fields(self):
             if f.name == "gap" and not include_gap:
