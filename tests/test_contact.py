@@ -9,12 +9,12 @@ from scipy.optimize import minimize
 from jaxvalve.errors import NeighbourListOverflow, ParameterError
 from jaxvalve.contact.neighbours import ROW_WIDTH
 from jaxvalve.contact import (
-from sheets import combine, grid_sheet
     PaperContact, SmoothContact, brute_force_pairs, build_neighbours,
     build_neighbours_checked, check_overflow, closest_point_barycentric, default_capacity,
     needs_rebuild, node_areas, point_triangle_distance, point_triangle_distance_np,
     signed_plane_distance, update, vicinity_threshold,
 )
+from sheets import combine, grid_sheet
 
 RNG = np.random.default_rng(0)
 MMHG = 1.33322e-4  # MPa
