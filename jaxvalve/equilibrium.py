@@ -15,7 +15,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import assembly
-from .errors import ConvergenceError, ParameterError
+from .contact.soft_pairs import (SoftPairs, build_soft_pairs, default_soft_capacity,
+                                 stale_soft_pairs)
+from .contact.soft_pairs import refresh as refresh_soft
+from .errors import ConvergenceError, NeighbourListOverflow, ParameterError
 from .problem import Params, Problem, validate_params
 from .solvers import RESULTS, EquilibriumSystem, FixedPoint, NewtonKrylov, Solution, Stats, iterate
 from .solvers.base import relative_residual
@@ -32,11 +35,50 @@ def contact_cutoff(contact, x, triangles, skin=DEFAULT_SKIN):
     return 1.25 * float(_contact.vicinity_threshold(x, triangles)) + skin
 
 
-def init_pairs(contact, problem, x, skin=DEFAULT_SKIN, capacity=None):
-    """Contact pair list for state x, grown outside jit until nothing overflows."""
+def init_pairs(contact, problem, x, skin=DEFAULT_SKIN, capacity=None, soft_capacity=None):
+    """Contact pair list for state x, grown outside jit until nothing overflows: the
+    Verlet list, and for a soft-min law the pruned list over it (`soft_pairs`)."""
     cutoff = contact_cutoff(contact, jnp.asarray(x), problem.triangles, skin)
-    return _contact.build_neighbours_checked(x, problem.triangles, problem.body, cutoff,
+    base = _contact.build_neighbours_checked(x, problem.triangles, problem.body, cutoff,
                                              capacity=capacity)
+    if not getattr(contact, "soft_min", False):
+        return base
+    cap = soft_capacity or default_soft_capacity(problem.n_nodes)
+    for _ in range(12):
+        pairs = _build_soft(base, jnp.asarray(x), problem.triangles, contact, cap)
+        if not bool(pairs.soft_overflow):
+            return pairs
+        cap = max(2 * cap, int(pairs.soft_count))
+    raise NeighbourListOverflow(f"the soft-min pair list needs {int(pairs.soft_count)} "
+                                "slots; it could not be grown")
+
+
+def stale_pairs(contact, problem, x, skin=DEFAULT_SKIN):
+    """The empty pair list(s) of `init_pairs`'s default capacities, to be built by the
+    solve's first update (`neighbours.stale_list`)."""
+    cutoff = contact_cutoff(contact, jnp.asarray(x), problem.triangles, skin)
+    base = _contact.stale_list(problem.n_nodes, problem.triangles, problem.body, cutoff,
+                               dtype=jnp.asarray(x).dtype)
+    if not getattr(contact, "soft_min", False):
+        return base
+    return stale_soft_pairs(base, default_soft_capacity(problem.n_nodes))
+
+
+@functools.partial(jax.jit, static_argnums=(4,))
+def _build_soft(base, x, triangles, contact, capacity):
+    return build_soft_pairs(base, x, triangles, contact, capacity)
+
+
+@jax.jit
+def _refresh(pairs, x, triangles, body, skin, contact):
+    return refresh_soft(pairs, x, triangles, body, skin, contact)
+
+
+def update_pairs(nbrs, x, problem, skin, contact):
+    """Bring a pair list (either level) up to date at x (usable inside jit)."""
+    if isinstance(nbrs, SoftPairs):
+        return refresh_soft(nbrs, x, problem.triangles, problem.body, skin, contact)
+    return _contact.update(nbrs, x, problem.triangles, problem.body, skin)
 
 
 def make_system(problem: Problem, params: Params) -> EquilibriumSystem:
@@ -62,8 +104,8 @@ def make_system(problem: Problem, params: Params) -> EquilibriumSystem:
     def update(y, a):
         if contact is None:
             return a
-        return dict(a, nbrs=_contact.update(a["nbrs"], y, problem.triangles, problem.body,
-                                            a["skin"]))
+        return dict(a, nbrs=update_pairs(a["nbrs"], y, problem, a["skin"],
+                                         a["params"].contact))
 
     def overflow(a):
         if contact is None:
@@ -196,17 +238,34 @@ def solve(problem: Problem, params: Params, x0, solver=None, *, throw: bool = Tr
     validate_params(params)
     # strong float64 leaves: a Python float and an array then share one compiled solve
     params = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype=x0.dtype), params)
-    if params.contact is not None and nbrs is None:
+    # a solver that updates the pair list before its first force evaluation builds it in
+    # the solve (compiled once there), from an empty list; the others get it built here
+    lazy = getattr((getattr(solver, "warm_start", None) or (solver,))[0], "lazy_force", False)
+    if params.contact is not None and nbrs is None and lazy:
+        nbrs = stale_pairs(params.contact, problem, x0, skin)
+    elif params.contact is not None and nbrs is None:
         nbrs = init_pairs(params.contact, problem, x0, skin)
-    elif params.contact is not None:
+    elif params.contact is not None and not lazy:
         # the solve assumes a pair list current at x0
-        nbrs = _contact.update(nbrs, x0, problem.triangles, problem.body, skin)
+        nbrs = (_refresh(nbrs, x0, problem.triangles, problem.body, skin, params.contact)
+                if isinstance(nbrs, SoftPairs)
+                else _contact.update(nbrs, x0, problem.triangles, problem.body, skin))
     for _ in range(6):
         y, result, stats, nb, _ = _solve_jit(solver, problem, params, x0, nbrs, float(skin))
         if isinstance(result, jax.core.Tracer) or int(result) != RESULTS.neighbour_overflow:
             break
-        nbrs = init_pairs(params.contact, problem, x0, skin, capacity=2 * max(
-            nbrs.capacity, int(nb.count)))
+        soft = isinstance(nb, SoftPairs)
+        base = nb.base if soft else nb
+        cap = nbrs.capacity
+        if bool(base.overflow):
+            cap = 2 * max(nbrs.capacity, int(base.count))
+        soft_cap = None
+        if soft:
+            soft_cap = nbrs.soft_capacity
+            if bool(nb.soft_overflow):
+                soft_cap = 2 * max(soft_cap, int(nb.soft_count))
+        nbrs = init_pairs(params.contact, problem, x0, skin, capacity=cap,
+                          soft_capacity=soft_cap)
     sol = Solution(x=y, result=result, stats=stats, nbrs=nb)
     if throw:
         if isinstance(result, jax.core.Tracer):

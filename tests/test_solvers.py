@@ -123,3 +123,26 @@ def test_deflection_scales_with_membrane_law(disk):
                         pressure=mmhg(1.0))
         w.append(float(equilibrium.solve(prob, params, x0, NewtonKrylov(rtol=1e-9)).x[0, 2]))
     np.testing.assert_allclose(w[0] / w[1], 2.0, rtol=5e-3)
+
+
+def test_fire_null_first_step_gives_the_initial_force_and_does_not_move(disk):
+    """FIRE evaluates F(x0) in step 0 (not in `init`): started at an equilibrium it stops
+    after that one step, exactly where it started; at P = 0 its residual scale is the
+    norm of that first force."""
+    prob, ref, x0 = disk
+    params = _params(ref)
+    x_eq = equilibrium.solve(prob, params, x0, NewtonKrylov(rtol=1e-10)).x
+    again = equilibrium.solve(prob, params, x_eq, FIRE(rtol=1e-8))
+    assert again.converged and int(again.stats.steps) == 1
+    assert int(again.stats.force_evals) == 1
+    np.testing.assert_array_equal(again.x, x_eq)
+    # P = 0 from the loaded state: relaxes back to flat, residual relative to ||F(x_eq)||
+    from jaxvalve import assembly
+    p0 = _params(ref, P=0.0)
+    flat = equilibrium.solve(prob, p0, x_eq, FIRE(rtol=1e-6))
+    assert flat.converged and int(flat.stats.steps) > 10
+    r = assembly.prepare(prob, p0)
+    f_start = jnp.linalg.norm(assembly.residual(x_eq, prob, p0, r))
+    f_end = jnp.linalg.norm(assembly.residual(flat.x, prob, p0, r))
+    assert float(f_start) > 1e-2
+    np.testing.assert_allclose(float(flat.stats.residual), float(f_end / f_start), rtol=1e-6)

@@ -22,6 +22,7 @@ from .neighbours import (
     check_overflow,
     default_capacity,
     needs_rebuild,
+    stale_list,
     triangle_body,
     update,
 )
@@ -32,7 +33,7 @@ __all__ = [
     "closest_point_barycentric", "point_triangle_distance", "point_triangle_distance_np",
     "safe_norm", "signed_plane_distance", "triangle_normal",
     "DEFAULT_CELL_CAPACITY", "NeighbourList", "brute_force_pairs", "build_neighbours",
-    "build_neighbours_checked", "check_overflow", "default_capacity", "needs_rebuild",
+    "build_neighbours_checked", "check_overflow", "default_capacity", "needs_rebuild", "stale_list",
     "triangle_body", "update",
     "PaperContact", "vicinity_threshold",
     "SmoothContact", "node_areas", "pair_distances",

@@ -42,6 +42,7 @@ import jax.numpy as jnp
 from ..errors import ParameterError
 from .geometry import (closest_point_soa, nearest_search_soa, point_triangle_distance_soa,
                        triangle_table)
+from .soft_pairs import SoftPairs
 from .neighbours import MAX_GROUP, SLOT_BITS, NeighbourList, bucket_index, bucket_sizes
 
 __all__ = ["SmoothContact", "pair_distances", "node_areas", "nearest_triangles"]
@@ -263,6 +264,8 @@ class SmoothContact:
         are gathered to the front, and the distance to their nearest triangle is
         recomputed differentiably (exact first and second derivatives, `_distance_rows`)
         on the shortest of a few static prefixes that holds them (`lax.switch`)."""
+        if isinstance(nbrs, SoftPairs):
+            return self._energy_pairs(x, triangles, nbrs, node_area)
         tri, side, found, dist = nearest_triangles(x, triangles, nbrs, self.one_sided)
         if self.soft_min:
             return self._energy_soft(x, triangles, nbrs, node_area, side, found, dist)
@@ -300,6 +303,50 @@ class SmoothContact:
 
         branches = [functools.partial(branch, b) for b in sizes]
         return jax.lax.switch(bucket_index(sizes, n_rows), branches, x)
+
+    def _energy_pairs(self, x, triangles, pairs, node_area):
+        """Soft-min energy on a pruned pair list (`soft_pairs.SoftPairs`): the same soft
+        distance as `soft_distance`, over the listed triangles of each group; its nearest
+        one, side and liveness are found among them (the list holds every triangle that
+        matters, see `soft_pairs`).  Evaluated on the shortest static prefix of the list
+        that holds its pairs (`lax.switch`)."""
+        base = pairs.base
+        R = base.rows
+        sizes = bucket_sizes(pairs.soft_capacity, smallest=256, most=3, factor=2)
+        node_of = jnp.clip(base.group_node, 0, x.shape[0] - 1)
+
+        def branch(q, x):
+            ok = jnp.arange(q) < pairs.n
+            g = jnp.where(ok, pairs.group[:q], 0)
+            t = jnp.where(ok, pairs.tri[:q], 0)
+            node = node_of[g]
+            v = triangles[t]
+            idx = jnp.stack([node, v[:, 0], v[:, 1], v[:, 2]])
+            d = _distance_rows(x, idx)
+            xs = jax.lax.stop_gradient(x)
+            cols = [_columns(xs, idx[k]) for k in range(4)]
+            d0, _, _, side_p = point_triangle_distance_soa(*cols, side=True)
+            d0 = jnp.where(ok, d0, jnp.inf)
+            dmin = jax.ops.segment_min(d0, g, num_segments=R)
+            found = jnp.isfinite(dmin)
+            if self.one_sided:
+                at_min = ok & (d0 <= dmin[g])
+                side = jax.ops.segment_max(jnp.where(at_min, side_p, -1.0), g, num_segments=R)
+                s_hard = side * dmin
+            else:
+                side, s_hard = 1.0, dmin
+            live = found & (s_hard < jax.lax.stop_gradient(self.gap))
+            z = jnp.where(ok, -(d - jnp.where(ok, dmin[g], 0.0)) / self.softness, -jnp.inf)
+            w = jnp.where(ok, jnp.exp(z), 0.0)
+            num = jax.ops.segment_sum(jnp.where(ok, w * d, 0.0), g, num_segments=R)
+            den = jax.ops.segment_sum(w, g, num_segments=R)
+            good = live & (den > 0)
+            ds = jnp.where(good, num / jnp.where(good, den, 1.0), self.gap)
+            s = jnp.minimum(jnp.where(good, side * ds, self.gap), self.gap)
+            return 0.5 * jnp.sum(jnp.where(good, node_area[node_of], 0.0) * self.potential(s))
+
+        branches = [functools.partial(branch, q) for q in sizes]
+        return jax.lax.switch(bucket_index(sizes, pairs.n), branches, x)
 
     def _energy_groups(self, b, x, triangles, tri, side, live, group_node, node_area):
         node = jnp.clip(group_node[:b], 0, x.shape[0] - 1)

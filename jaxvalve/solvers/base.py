@@ -112,15 +112,20 @@ def check_state(system, y, args, F):
     return code
 
 
+def _set_f0(args, F0):
+    """Set the residual scale at P = 0 (``args["f0"]``, sentinel < 0) from a first force."""
+    f0 = jnp.linalg.norm(F0)
+    return dict(args, f0=jnp.where(args["f0"] < 0, jnp.where(f0 > 0, f0, 1.0), args["f0"]))
+
+
 def iterate(solver, system, y0, args):
     """Run ``solver`` from y0 in one `lax.while_loop`.  Returns (y, args, state, result, n).
     ``args`` must be current for y0 (its pair list built or updated there)."""
     state = solver.init(system, y0, args)
-    if "f0" in args:  # residual scale at P = 0: the first solver's initial force
+    lazy = getattr(solver, "lazy_force", False)   # F(y0) comes from the first step
+    if "f0" in args and not lazy:  # residual scale at P = 0: the initial force
         F0 = state["F"] if "F" in state else system.force(y0, args)
-        f0 = jnp.linalg.norm(F0)
-        args = dict(args, f0=jnp.where(args["f0"] < 0, jnp.where(f0 > 0, f0, 1.0),
-                                       args["f0"]))
+        args = _set_f0(args, F0)
     done, result = solver.terminate(system, y0, args, state)
 
     def cond(c):
@@ -131,6 +136,8 @@ def iterate(solver, system, y0, args):
         y, args, state, n, _, _ = c
         args = system.update(y, args)
         y, state = solver.step(system, y, args, state)
+        if "f0" in args and lazy:
+            args = _set_f0(args, state["F"])
         done, result = solver.terminate(system, y, args, state)
         return y, args, state, n + 1, done, result
 
