@@ -19,12 +19,13 @@ import numpy as np
 from jaxvalve import Scene, simulate
 from jaxvalve import valve as V
 from jaxvalve.leaflet_mesh import mesh_leaflet
+from jaxvalve.scene import VALVE_DT_MAX
 from jaxvalve.simulation import _measure
 from jaxvalve.solvers import FIRE
 
 
 def _close(valve, sc, p, x0, rtol):
-    solver = FIRE(rtol=rtol, max_steps=200_000)
+    solver = FIRE(rtol=rtol, max_steps=200_000, dt_max=VALVE_DT_MAX)   # as `Scene`
     kw = dict(solver=solver, contact=sc.contact_law(), bending=sc.bending_law(), x0=x0,
               throw=False)
     V.close(valve, sc.material(), p, **kw)          # compile
