@@ -150,6 +150,8 @@ def _run(solver, problem, params, x0, nbrs, skin):
     s = solver.stats(st)
     # every solver keeps the force at its current state: no extra traced force evaluation
     res = relative_residual(system, y, args, st["F"] if "F" in st else None)
+    if getattr(solver, "lazy_force", False):   # no step ran: F(x0) was never evaluated
+        res = jnp.where(n > 0, res, jnp.inf)
     stats = Stats(steps=steps + n, force_evals=evals + s["force_evals"], hvps=hvps + s["hvps"],
                   residual=res)
     return y, result, stats, args

@@ -146,3 +146,14 @@ def test_fire_null_first_step_gives_the_initial_force_and_does_not_move(disk):
     f_end = jnp.linalg.norm(assembly.residual(flat.x, prob, p0, r))
     assert float(f_start) > 1e-2
     np.testing.assert_allclose(float(flat.stats.residual), float(f_end / f_start), rtol=1e-6)
+
+
+def test_fire_with_no_step_reports_no_convergence_and_no_residual(disk):
+    """With max_steps=0 FIRE never evaluates F(x0): the solve says so (max_steps_reached,
+    residual +inf), and does not report the zero initial force as a converged residual."""
+    prob, ref, x0 = disk
+    sol = equilibrium.solve(prob, _params(ref), x0, FIRE(max_steps=0), throw=False)
+    assert int(sol.result) == RESULTS.max_steps_reached and not sol.converged
+    assert np.isinf(float(sol.stats.residual))
+    with pytest.raises(ConvergenceError, match="residual"):
+        equilibrium.solve(prob, _params(ref), x0, FIRE(max_steps=0))

@@ -42,7 +42,7 @@ import jax.numpy as jnp
 from ..errors import ParameterError
 from .geometry import (closest_point_soa, nearest_search_soa, point_triangle_distance_soa,
                        triangle_table)
-from .soft_pairs import SoftPairs
+from .soft_pairs import SoftPairs, build_soft_pairs
 from .neighbours import MAX_GROUP, SLOT_BITS, NeighbourList, bucket_index, bucket_sizes
 
 __all__ = ["SmoothContact", "pair_distances", "node_areas", "nearest_triangles"]
@@ -83,27 +83,22 @@ def pair_distances(x, triangles, nbrs: NeighbourList, signed: bool = False):
     return d, side.reshape(-1)
 
 
-def soft_distance(x, triangles, nbrs: NeighbourList, live, rows=None, *, softness):
-    """Soft-min distance (R,) per group of `nbrs` (see `SmoothContact`), differentiable:
-    sum_T w_T d_T / sum_T w_T over the group's candidate triangles T, with
-    w_T = exp(-(d_T - min d) / softness).
+def soft_distance(x, triangles, nbrs: NeighbourList, live, *, softness):
+    """Soft-min distance (R,) mm per group of `nbrs` (see `SmoothContact`), over every
+    candidate triangle T of the group: sum_T w_T d_T / sum_T w_T, with
+    w_T = exp(-(d_T - min d) / softness); differentiable.  live (R,) bool: the groups
+    wanted; the others get +inf.
 
-    live (R,) bool: the groups wanted; the others get +inf.  Their rows are gathered to
-    the front and the first ``rows`` of them (static; default all) are visited, so the
-    caller must pass a ``rows`` that holds every row of the live groups."""
-    R, W = nbrs.cand.shape
-    b = R if rows is None else rows
-    in_use = jnp.arange(R) < nbrs.n_rows
-    row_live = live[nbrs.row_group] & in_use
-    rank = jnp.cumsum(row_live, dtype=jnp.int32) - 1
-    pick = jnp.full((R,), R - 1, jnp.int32).at[jnp.where(row_live, rank, R)].set(
-        jnp.arange(R, dtype=jnp.int32), mode="drop")[:b]
-    keep = jnp.arange(b) < jnp.sum(row_live)
-    cand = jnp.where(keep[:, None], nbrs.cand[pick], triangles.shape[0])
+    This is the definition.  The energy evaluates it on a pruned list
+    (`soft_pairs.SoftPairs`, only the T with w_T > exp(-PRUNE_REACH)); the tests check
+    the two against each other."""
+    R = nbrs.cand.shape[0]
+    rows = live[nbrs.row_group] & (jnp.arange(R) < nbrs.n_rows)
+    cand = jnp.where(rows[:, None], nbrs.cand, triangles.shape[0])
     valid = cand < triangles.shape[0]
-    grp = nbrs.row_group[pick]
+    grp = nbrs.row_group
     node = jnp.clip(nbrs.group_node[grp], 0, x.shape[0] - 1)
-    v = triangles[jnp.where(valid, cand, 0)]                          # (b, W, 3)
+    v = triangles[jnp.where(valid, cand, 0)]                          # (R, W, 3)
     idx = jnp.stack([jnp.broadcast_to(node[:, None], valid.shape), v[..., 0], v[..., 1],
                      v[..., 2]]).reshape(4, -1)
     d = _distance_rows(x, idx).reshape(valid.shape)
@@ -115,6 +110,19 @@ def soft_distance(x, triangles, nbrs: NeighbourList, live, rows=None, *, softnes
     den = jax.ops.segment_sum(jnp.sum(w, 1), grp, num_segments=R)
     ok = (den > 0) & live
     return jnp.where(ok, num / jnp.where(ok, den, 1.0), jnp.inf)
+
+
+def soft_energy_reference(law, x, triangles, nbrs: NeighbourList, node_area):
+    """The soft-min contact energy (N mm) of `law` from its definition: `soft_distance`
+    over every candidate of each live group.  For checks and benchmarks of the pruned
+    evaluation that `SmoothContact.energy` uses."""
+    _, side, found, dist = nearest_triangles(x, triangles, nbrs, law.one_sided)
+    s_hard = side * dist if law.one_sided else dist
+    live = found & (s_hard < jax.lax.stop_gradient(law.gap))
+    d = soft_distance(x, triangles, nbrs, live, softness=law.softness)
+    s = jnp.minimum(jnp.where(live, side * d if law.one_sided else d, law.gap), law.gap)
+    node = jnp.clip(nbrs.group_node, 0, x.shape[0] - 1)
+    return 0.5 * jnp.sum(jnp.where(live, node_area[node], 0.0) * law.potential(s))
 
 
 CHUNK_ROWS = 256  # rows (x ROW_WIDTH slots) per loop iteration of the nearest search
@@ -257,18 +265,20 @@ class SmoothContact:
         return 0.5 * self.stiffness * s * s
 
     def energy(self, x, triangles, nbrs: NeighbourList, node_area):
-        """Contact energy (N mm) for positions x (N,3) mm, node_area (N,) mm^2.
+        """Contact energy (N mm) for positions x (N,3) mm, node_area (N,) mm^2; nbrs: a
+        `NeighbourList`, or for the soft minimum also a `soft_pairs.SoftPairs` (which a
+        solve keeps; from a `NeighbourList` the pruned list is built here, at x).
 
-        The nearest triangle of each (node, body) group is found without derivatives
-        (`nearest_triangles`).  Only the groups within the gap (s < g0) carry energy: they
-        are gathered to the front, and the distance to their nearest triangle is
+        Hard minimum: the nearest triangle of each (node, body) group is found without
+        derivatives (`nearest_triangles`).  Only the groups within the gap (s < g0) carry
+        energy: they are gathered to the front, and the distance to their nearest triangle is
         recomputed differentiably (exact first and second derivatives, `_distance_rows`)
         on the shortest of a few static prefixes that holds them (`lax.switch`)."""
-        if isinstance(nbrs, SoftPairs):
+        if self.soft_min:
+            if not isinstance(nbrs, SoftPairs):   # prune at x itself (no margin needed)
+                nbrs = build_soft_pairs(nbrs, x, triangles, self, nbrs.capacity, margin=0.0)
             return self._energy_pairs(x, triangles, nbrs, node_area)
         tri, side, found, dist = nearest_triangles(x, triangles, nbrs, self.one_sided)
-        if self.soft_min:
-            return self._energy_soft(x, triangles, nbrs, node_area, side, found, dist)
         R = found.shape[0]
         s = side * dist if self.one_sided else dist
         gap = jax.lax.stop_gradient(self.gap)
@@ -283,33 +293,13 @@ class SmoothContact:
                               tri[live], side[live], jnp.arange(R) < n_live,
                               nbrs.group_node[live], node_area)
 
-    def _energy_soft(self, x, triangles, nbrs, node_area, side, found, dist):
-        """Energy with the soft-min distance over every candidate of each group.  The soft
-        minimum is >= the nearest distance, so only groups whose hard (signed) gap is
-        below g0 can carry energy: their rows are gathered and processed on the shortest
-        static prefix that holds them (`lax.switch`)."""
-        R = nbrs.cand.shape[0]
-        s_hard = side * dist if self.one_sided else dist
-        live = found & (s_hard < jax.lax.stop_gradient(self.gap))
-        n_rows = jnp.sum(live[nbrs.row_group] & (jnp.arange(R) < nbrs.n_rows))
-        sizes = bucket_sizes(R, smallest=64, most=3, factor=4)
-        node = jnp.clip(nbrs.group_node, 0, x.shape[0] - 1)
-
-        def branch(b, x):
-            d = soft_distance(x, triangles, nbrs, live, b, softness=self.softness)
-            s = side * d if self.one_sided else d
-            s = jnp.minimum(jnp.where(live, s, self.gap), self.gap)
-            return 0.5 * jnp.sum(jnp.where(live, node_area[node], 0.0) * self.potential(s))
-
-        branches = [functools.partial(branch, b) for b in sizes]
-        return jax.lax.switch(bucket_index(sizes, n_rows), branches, x)
-
     def _energy_pairs(self, x, triangles, pairs, node_area):
-        """Soft-min energy on a pruned pair list (`soft_pairs.SoftPairs`): the same soft
-        distance as `soft_distance`, over the listed triangles of each group; its nearest
-        one, side and liveness are found among them (the list holds every triangle that
-        matters, see `soft_pairs`).  Evaluated on the shortest static prefix of the list
-        that holds its pairs (`lax.switch`)."""
+        """Soft-min energy on a pruned pair list (`soft_pairs.SoftPairs`): the soft
+        distance of `soft_distance` over the listed triangles of each group (every
+        triangle that weighs more than exp(-PRUNE_REACH) of the nearest; tested equal to
+        the sum over all candidates), whose nearest one gives the side and the liveness.
+        Only the groups with a (signed) gap below g0 carry energy.  Evaluated on the
+        shortest static prefix of the list that holds its pairs (`lax.switch`)."""
         base = pairs.base
         R = base.rows
         sizes = bucket_sizes(pairs.soft_capacity, smallest=256, most=3, factor=2)
@@ -323,9 +313,8 @@ class SmoothContact:
             v = triangles[t]
             idx = jnp.stack([node, v[:, 0], v[:, 1], v[:, 2]])
             d = _distance_rows(x, idx)
-            xs = jax.lax.stop_gradient(x)
-            cols = [_columns(xs, idx[k]) for k in range(4)]
-            d0, _, _, side_p = point_triangle_distance_soa(*cols, side=True)
+            cols = [_columns(jax.lax.stop_gradient(x), idx[k]) for k in range(4)]
+            d0, _, _, side_p = point_triangle_distance_soa(*cols, side=True)   # no grad
             d0 = jnp.where(ok, d0, jnp.inf)
             dmin = jax.ops.segment_min(d0, g, num_segments=R)
             found = jnp.isfinite(dmin)

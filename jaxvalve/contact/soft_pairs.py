@@ -102,7 +102,7 @@ def _row_prefix(base: NeighbourList, want, b):
     return jnp.where(keep[:, None], base.cand[pick], m), base.row_group[pick]
 
 
-def _select(x, triangles, base, want, dmin, limit, capacity, b):
+def _select(x, want, dmin, limit, *, triangles, base, capacity, b):
     """Pairs of the first b wanted rows with d_T <= dmin + limit, compacted into
     (tri (P,), group (P,), needed)."""
     m = triangles.shape[0]
@@ -139,9 +139,8 @@ def build_soft_pairs(base: NeighbourList, x, triangles, law, capacity: int,
     R = base.rows
     n_rows = jnp.sum(want[base.row_group] & (jnp.arange(R) < base.n_rows))
     sizes = bucket_sizes(R, smallest=64, most=2, factor=4)
-    branches = [functools.partial(_select, b=b, capacity=capacity) for b in sizes]
-    branches = [lambda x, want, dmin, limit, f=f: f(x, triangles, base, want, dmin, limit)
-                for f in branches]
+    branches = [functools.partial(_select, triangles=triangles, base=base,
+                                  capacity=capacity, b=b) for b in sizes]
     tri, group, needed = jax.lax.switch(bucket_index(sizes, n_rows), branches, x, want,
                                         jnp.where(want, dist, jnp.inf), limit)
     over = needed > capacity
