@@ -1,0 +1,153 @@
+"""The differentiable chain theta = (r, a, b, alpha) -> reference mesh, suturing paths,
+sutured positions, equilibrium and smooth coaptation metrics (`jaxvalve.design`)."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxvalve import equilibrium
+from jaxvalve import valve as V
+from jaxvalve.coaptation import annulus_level
+from jaxvalve.coaptation.smooth import smooth_metrics, smooth_plan
+from jaxvalve.design import BenchmarkPaths, FixedPaths, ValveDesign, along_path
+from jaxvalve.errors import MeshError
+from jaxvalve.leaflet_mesh import mesh_leaflet
+from jaxvalve.placement import along_polyline
+from jaxvalve.root import benchmark_root
+from jaxvalve.scene import Scene
+from jaxvalve.solvers import FIRE
+from jaxvalve.template import Template
+from jaxvalve.template_map import template_map
+
+BASE = (12.0, 7.1, 15.0, 160.0)
+
+
+def _fd(fun, theta, k, e):
+    d = np.zeros(4)
+    d[k] = e
+    return (np.asarray(fun(jnp.asarray(theta) + d)) - np.asarray(fun(jnp.asarray(theta) - d))) / (2 * e)
+
+
+@pytest.mark.parametrize("h", [1.2, 3.0])
+def test_template_map_reproduces_the_mesher_and_its_jacobian_matches_fd(h):
+    m = mesh_leaflet(Template(*BASE), h)
+    tm = template_map(m)
+    np.testing.assert_allclose(np.asarray(tm.points(*BASE)), m.points, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(tm.sutured_t(12.0, 7.1, 160.0)), m.sutured_t,
+                               rtol=0, atol=1e-14)
+    theta = jnp.asarray((12.5, 6.8, 15.4, 150.0))
+    J = jax.jacfwd(lambda t: tm.points(*t))(theta)
+    for k in range(4):
+        fd = _fd(lambda t: tm.points(*t), theta, k, 1e-6)
+        np.testing.assert_allclose(np.asarray(J[..., k]), fd, rtol=0, atol=1e-7)
+    # the mapped boundary lies on the new template's edges: same ends, same lengths
+    q = mesh_leaflet(Template(12.5, 6.8, 15.4, 150.0), h)   # same counts at this change
+    if len(q.points) == len(m.points) and len(q.sutured) == len(m.sutured):
+        K = len(q.sutured) + len(q.free) - 2
+        np.testing.assert_allclose(np.asarray(tm.points(*theta))[:K], q.points[:K], atol=1e-9)
+
+
+def test_remesh_flag_and_wrong_mesh():
+    tm = template_map(mesh_leaflet(Template(*BASE), 2.0))
+    assert not tm.needs_remesh(12.5, 7.5, 15.5)
+    assert tm.quality(12.5, 7.5, 15.5)["min_angle"] > 20.0
+    assert tm.needs_remesh(20.0, 1.0, 25.0)          # far away: distorted triangles
+    m = mesh_leaflet(Template(*BASE), 2.0)
+    bad = type(m)(m.template, m.h, m.points + 0.1, m.triangles, m.sutured, m.sutured_t,
+                  m.free, m.free_t)
+    with pytest.raises(MeshError, match="boundary"):
+        template_map(bad)
+
+
+def test_benchmark_height_solves_the_fit_and_its_implicit_derivative():
+    root = benchmark_root(47.71, wall=False)
+    bp = BenchmarkPaths.from_root(root)
+    assert abs(float(bp.height(47.71)) - root.dimensions["commissure_height"]) < 1e-9
+    e = 1e-5
+    fd = (benchmark_root(47.71 + e, wall=False).dimensions["commissure_height"]
+          - benchmark_root(47.71 - e, wall=False).dimensions["commissure_height"]) / (2 * e)
+    assert abs(float(jax.grad(bp.height)(47.71)) - fd) < 1e-7 * abs(fd)
+    # the paths at L have length L, and reproduce the root's paths
+    paths = bp(jnp.asarray(47.71))
+    for p, q in zip(paths, root.paths):
+        np.testing.assert_allclose(np.asarray(p), q, atol=1e-9)
+        assert abs(float(jnp.sum(jnp.linalg.norm(jnp.diff(p, axis=0), axis=1))) - 47.71) < 1e-9
+
+
+def test_along_path_matches_the_host_version_and_is_differentiable():
+    rng = np.random.default_rng(3)
+    path = np.cumsum(rng.normal(size=(9, 3)), axis=0)
+    t = np.sort(rng.uniform(0, 1, 15))
+    np.testing.assert_allclose(np.asarray(along_path(jnp.asarray(path), jnp.asarray(t))),
+                               along_polyline(path, t), atol=1e-12)
+    g = jax.jacfwd(lambda tt: along_path(jnp.asarray(path), tt))(jnp.asarray(t))
+    fd = (along_polyline(path, t + 1e-7) - along_polyline(path, t - 1e-7)) / 2e-7
+    np.testing.assert_allclose(np.einsum("kik->ki", np.asarray(g)), fd, atol=1e-6)
+
+
+@pytest.fixture(scope="module")
+def design():
+    sc = Scene(h=2.5)
+    lm = mesh_leaflet(sc.template(), 2.5)
+    valve = V.build_valve(sc.load_root(), lm)
+    return sc, valve, ValveDesign.build(valve, template_map(lm))
+
+
+def test_design_at_base_reproduces_the_valve_and_fixed_positions_have_fd_jacobian(design):
+    sc, valve, d = design
+    th = jnp.asarray(BASE)
+    np.testing.assert_allclose(np.asarray(d.ref(th)), np.asarray(valve.ref), atol=1e-12)
+    fixed = np.asarray(valve.problem.fixed)
+    xf = np.asarray(d.x_fixed(th))
+    np.testing.assert_allclose(xf[fixed], valve.x_placed[fixed], atol=1e-9)
+    np.testing.assert_array_equal(xf[~fixed], valve.x_start[~fixed])
+    J = jax.jacfwd(lambda t: d.x_fixed(t)[fixed])(th)
+    for k in range(4):
+        np.testing.assert_allclose(np.asarray(J[..., k]),
+                                   _fd(lambda t: d.x_fixed(t)[fixed], th, k, 1e-6), atol=1e-7)
+    # b moves neither the sutured edge nor the root
+    assert float(jnp.max(jnp.abs(J[..., 2]))) == 0.0
+
+
+def test_fixed_paths_put_sutured_nodes_on_the_given_paths(design):
+    sc, valve, d = design
+    fp = ValveDesign.build(valve, d.tmap, FixedPaths(valve.root.paths))
+    pos = np.asarray(fp.sutured_positions(jnp.asarray((12.3, 7.3, 15.0, 160.0))))
+    for i in range(3):
+        path = np.asarray(valve.root.paths[i])
+        # every point lies on a segment of the polyline
+        seg = np.diff(path, axis=0)
+        rel = pos[i][:, None, :] - path[None, :-1]
+        t = np.clip(np.sum(rel * seg, -1) / np.sum(seg * seg, -1), 0, 1)
+        dist = np.linalg.norm(rel - t[..., None] * seg, axis=-1).min(axis=1)
+        assert dist.max() < 1e-9
+
+
+def test_metric_gradients_through_the_closure_match_central_differences(design):
+    """d(smooth h_E, h_c, h_avr, h_C-C at 3 mmHg)/d(r, a, b) by the implicit adjoint vs
+    central differences of the same chain (relative error < 1e-3)."""
+    sc, valve, d = design
+    mat, con, ben = sc.material(), sc.contact_law(), sc.bending_law()
+    solver = FIRE(rtol=1e-10, max_steps=100_000, dt_max=1.5)
+    x = np.asarray(V.close(valve, mat, 3.0, solver=solver, contact=con, bending=ben).x)
+    root = valve.root
+    s0 = annulus_level(x, np.asarray(valve.problem.fixed), valve.body, root.axis, root.origin)
+    plan = smooth_plan(x, valve.triangles, valve.body, valve.free_edge, axis=root.axis,
+                       origin=root.origin, annulus_level=s0)
+    base = valve.params(mat, 3.0, con, bending=ben)
+    nbrs = equilibrium.init_pairs(con, valve.problem, jnp.asarray(x))
+    w = jnp.asarray([1.0, 0.7, 0.5, 0.3])
+
+    def metrics(theta):
+        params = base.replace(ref=d.ref(theta))
+        s = equilibrium.solve(valve.problem, params, d.x_fixed(theta, x_free=x), solver,
+                              nbrs=nbrs)
+        m = smooth_metrics(s.x, plan, 0.1)
+        return jnp.stack([m["h_e"], m["h_c"], m["h_avr_valve"], m["h_cc"]])
+
+    th = jnp.asarray(BASE)
+    g = jax.grad(lambda t: jnp.sum(w * metrics(t)))(th)
+    for k in range(3):
+        fd = float(np.sum(np.asarray(w) * _fd(metrics, th, k, 1e-3)))
+        assert abs(float(g[k]) - fd) < 1e-3 * abs(fd), (k, float(g[k]), fd)
+    assert float(g[3]) != 0.0     # alpha moves the sutured edge: it has a gradient too
