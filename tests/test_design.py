@@ -22,6 +22,13 @@ from jaxvalve.template_map import template_map
 BASE = (12.0, 7.1, 15.0, 160.0)
 
 
+@pytest.fixture(scope="module", autouse=True)
+def _release_compiled():
+    """The gradient of a whole closure compiles large programs: free them afterwards."""
+    yield
+    jax.clear_caches()
+
+
 def _fd(fun, theta, k, e):
     d = np.zeros(4)
     d[k] = e
