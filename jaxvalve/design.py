@@ -17,7 +17,6 @@ equilibrium (`equilibrium.solve` is differentiated by its adjoint) reaches theta
 from __future__ import annotations
 
 import dataclasses
-import math
 from typing import Any
 
 import jax
@@ -25,29 +24,22 @@ import jax.numpy as jnp
 import numpy as np
 
 from .errors import ParameterError
-from .placement import leaflet_frame
-from .root import _unit_path
+from .materials import _concrete
+from .placement import along_path, leaflet_frame
+from .root import _unit_path, length_terms, path_length
+from .template import Template, sutured_length
 from .template_map import TemplateMap
 
-__all__ = ["along_path", "sutured_length", "FixedPaths", "BenchmarkPaths", "ValveDesign",
+__all__ = ["check_theta", "FixedPaths", "BenchmarkPaths", "ValveDesign",
            "paths_for"]
 
 
-def sutured_length(r, a, alpha):
-    """Length of A-B-C-D (mm): 2a + pi r alpha / 180 (differentiable)."""
-    return 2.0 * a + math.pi * r * alpha / 180.0
-
-
-def along_path(path, t):
-    """Points (K, 3) at arc-length fractions t (K,) in [0, 1] of the polyline path (P, 3);
-    differentiable in both path and t (jax.numpy version of `placement.along_polyline`)."""
-    seg = jnp.linalg.norm(jnp.diff(path, axis=0), axis=1)
-    s = jnp.concatenate([jnp.zeros(1, path.dtype), jnp.cumsum(seg)])
-    u = jnp.clip(t, 0.0, 1.0) * s[-1]
-    k = jnp.clip(jnp.searchsorted(jax.lax.stop_gradient(s), jax.lax.stop_gradient(u),
-                                  side="right") - 1, 0, path.shape[0] - 2)
-    w = (u - s[k]) / seg[k]
-    return path[k] + w[:, None] * (path[k + 1] - path[k])
+def check_theta(theta):
+    """Raise `ParameterError` (naming the parameter and its bound) for a concrete theta =
+    (r, a, b, alpha) that is not a valid template; traced values are not checked."""
+    if all(_concrete(v) for v in theta):
+        Template(*(float(v) for v in theta))
+    return theta
 
 
 @dataclasses.dataclass(frozen=True)
@@ -71,36 +63,44 @@ class BenchmarkPaths:
     xy: Any
     zeta: Any
     H_range: tuple
+    terms: tuple
 
     @classmethod
     def from_root(cls, root):
         d = root.dimensions
-        if d.get("fitted_parameter") != "commissure_height":
+        if not d or d.get("fitted_parameter") != "commissure_height":
             raise ParameterError("BenchmarkPaths needs a root made by benchmark_root")
         xy = np.stack([np.asarray(p)[:, :2] for p in root.paths])
-        _, zeta = _unit_path(d["path_exponent"], d["n_path"])
-        return cls(xy, zeta, tuple(d["height_range_mm"]))
+        s, zeta = _unit_path(d["path_exponent"], d["n_path"])
+        terms = length_terms(s, zeta, d["annulus_radius"], d["stj_radius"])
+        return cls(xy, zeta, tuple(d["height_range_mm"]), terms)
 
     def length(self, H):
-        """Polyline length (mm) of one path at commissure height H."""
-        a2 = jnp.sum(jnp.diff(jnp.asarray(self.xy[0]), axis=0) ** 2, axis=1)
-        b2 = jnp.diff(jnp.asarray(self.zeta)) ** 2
-        return jnp.sum(jnp.sqrt(a2 + H * H * b2))
+        """Polyline length (mm) of one path at commissure height H (`root.path_length`)."""
+        return path_length(tuple(jnp.asarray(t) for t in self.terms), H, jnp)
 
-    def height(self, L, iterations=60):
-        """Commissure height H (mm) with length(H) = L: safeguarded Newton on the host
-        bracket, then one Newton step with derivatives (exact implicit gradient)."""
+    def height(self, L, iterations=40):
+        """Commissure height H (mm) with length(H) = L: Newton (length is convex and
+        increasing in H) from the top of the accepted range, then one Newton step with
+        derivatives, so that dH/dL = 1 / length'(H) exactly.  A concrete L outside the
+        accepted range raises `ParameterError`; a traced one gives NaN."""
         lo, hi = self.H_range
+        L_lo, L_hi = (float(path_length(self.terms, H)) for H in (lo, hi))   # host
+        if _concrete(L) and not L_lo <= float(L) <= L_hi:
+            raise ParameterError(
+                f"sutured_length = {float(L):.6g} mm has no benchmark suturing path: the "
+                f"accepted range is [{L_lo:.4f}, {L_hi:.4f}] mm (commissure heights "
+                f"[{lo:g}, {hi:g}] mm)")
         Lc = jax.lax.stop_gradient(L)
         dlen = jax.grad(self.length)
 
         def body(_, H):
-            Hn = H - (self.length(H) - Lc) / dlen(H)
-            return jnp.clip(Hn, lo, hi)
+            return jnp.clip(H - (self.length(H) - Lc) / dlen(H), lo, hi)
 
-        H = jax.lax.fori_loop(0, iterations, body, jnp.asarray(0.5 * (lo + hi), Lc.dtype))
-        H = jax.lax.stop_gradient(H)
-        return H - (self.length(H) - L) / dlen(H)
+        H = jax.lax.stop_gradient(
+            jax.lax.fori_loop(0, iterations, body, jnp.asarray(hi, jnp.result_type(Lc, float))))
+        H = H - (self.length(H) - L) / dlen(H)
+        return jnp.where((Lc >= L_lo) & (Lc <= L_hi), H, jnp.nan)
 
     def __call__(self, L):
         H = self.height(L)
@@ -138,12 +138,12 @@ class ValveDesign:
 
     def ref(self, theta):
         """Reference nodes (3n, 2) mm of the three leaflets for theta = (r, a, b, alpha)."""
-        p = self.tmap.points(*theta)
+        p = self.tmap.points(*check_theta(theta))
         return jnp.concatenate([p, p, p])
 
     def sutured_positions(self, theta):
         """(3, n_s, 3) mm: the sutured nodes of each leaflet on its path."""
-        r, a, _, alpha = theta
+        r, a, _, alpha = check_theta(theta)
         t = self.tmap.sutured_t(r, a, alpha)
         paths = self.paths(sutured_length(r, a, alpha))
         return jnp.stack([along_path(paths[i], 1.0 - t if self.mirror[i] else t)

@@ -14,22 +14,38 @@ For leaflet i between commissures c_i and c_{i+1}:
 """
 from __future__ import annotations
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .errors import MeshError
 
-__all__ = ["along_polyline", "leaflet_frame", "place_leaflet"]
+__all__ = ["along_path", "along_polyline", "leaflet_frame", "place_leaflet"]
+
+
+def along_path(path, t):
+    """Points (K, 3) at arc-length fractions t (K,) in [0, 1] of the polyline path (P, 3);
+    jax.numpy, differentiable in both path and t.  Zero-length segments are skipped;
+    t = 0 and t = 1 give the end points exactly."""
+    path = jnp.asarray(path)
+    seg = jnp.linalg.norm(jnp.diff(path, axis=0), axis=1)
+    s = jnp.concatenate([jnp.zeros(1, path.dtype), jnp.cumsum(seg)])
+    u = jnp.clip(jnp.asarray(t, path.dtype), 0.0, 1.0) * s[-1]
+    k = jnp.clip(jnp.searchsorted(jax.lax.stop_gradient(s), jax.lax.stop_gradient(u),
+                                  side="right") - 1, 0, path.shape[0] - 2)
+    ok = seg[k] > 0
+    w = jnp.where(ok, (u - s[k]) / jnp.where(ok, seg[k], 1.0), 0.0)
+    out = path[k] + w[:, None] * (path[k + 1] - path[k])
+    # the ends exactly (neighbouring leaflets share their commissure node bit for bit)
+    out = jnp.where((u >= s[-1])[:, None], path[-1], out)
+    return jnp.where((u <= 0.0)[:, None], path[0], out)
 
 
 def along_polyline(path, t):
-    """Points (K, 3) at arc-length fractions t (K,) in [0, 1] of the polyline path (P, 3)."""
-    path = np.asarray(path, float)
-    seg = np.linalg.norm(np.diff(path, axis=0), axis=1)
-    s = np.concatenate([[0.0], np.cumsum(seg)])
-    u = np.clip(np.asarray(t, float), 0.0, 1.0) * s[-1]
-    return np.stack([np.interp(u, s, path[:, k]) for k in range(3)], axis=1)
+    """`along_path` on the host: NumPy in, NumPy (K, 3) out."""
+    return np.asarray(along_path(np.asarray(path, float), np.asarray(t, float)))
 
 
 def leaflet_frame(c0, c1, axis, centre):

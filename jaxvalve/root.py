@@ -503,11 +503,22 @@ def benchmark_path_length(commissure_height, *, annulus_diameter=24.0, stj_diame
     return _length_fn(s, zeta, Ra, Rc)(H)
 
 
-def _length_fn(s, zeta, Ra, Rc):
+def length_terms(s, zeta, Ra, Rc):
+    """(a2, b2) per path segment: its squared length is a2 + H^2 b2 at commissure height H."""
     xy = _path_xyz(s, zeta, 0.0, Ra, Rc, 0.0)[:, :2]
-    a2 = np.sum(np.diff(xy, axis=0) ** 2, axis=1)
-    b2 = np.diff(zeta) ** 2
-    return lambda H: float(np.sum(np.sqrt(a2 + H * H * b2)))
+    return np.sum(np.diff(xy, axis=0) ** 2, axis=1), np.diff(zeta) ** 2
+
+
+def path_length(terms, H, xp=np):
+    """Polyline length (mm) of a benchmark path at commissure height H (xp: numpy or
+    jax.numpy, differentiable in H with the latter)."""
+    a2, b2 = terms
+    return xp.sum(xp.sqrt(a2 + H * H * b2))
+
+
+def _length_fn(s, zeta, Ra, Rc):
+    terms = length_terms(s, zeta, Ra, Rc)
+    return lambda H: float(path_length(terms, H))
 
 
 def benchmark_length_range(*, annulus_diameter=24.0, stj_diameter=26.0, path_exponent=4.0,

@@ -76,7 +76,7 @@ class Template:
     @property
     def sutured_length(self) -> float:
         """Length of A-B-C-D (mm): 2a + pi r alpha / 180."""
-        return 2 * self.a + math.pi * self.r * self.alpha / 180.0
+        return sutured_length(self.r, self.a, self.alpha)
 
     @property
     def free_length(self) -> float:
@@ -107,6 +107,11 @@ class Template:
 
     def as_dict(self):
         return dataclasses.asdict(self)
+
+
+def sutured_length(r, a, alpha):
+    """Length of A-B-C-D (mm): 2a + pi r alpha / 180 (plain arithmetic: floats or traced)."""
+    return 2 * a + math.pi * r * alpha / 180.0
 
 
 def corners(r, a, b, alpha, xp=np):

@@ -25,7 +25,7 @@ import numpy as np
 import scipy.sparse.linalg as spla
 
 from .errors import MeshError, ParameterError
-from .leaflet_mesh import LeafletMesh, _edge_counts, mesh_quality
+from .leaflet_mesh import LeafletMesh, _edge_counts, _signed_areas, mesh_quality
 from .placement import cot_laplacian
 from .template import Template, corners
 
@@ -83,8 +83,7 @@ class TemplateMap:
         beta = alpha * (math.pi / 360.0)
         L_arc = 2.0 * beta * r
         L = 2.0 * a + L_arc
-        k = np.searchsorted(self.boundary, self.base.sutured)
-        e, f = self.edge[k], jnp.asarray(self.frac[k])
+        e, f = self.edge[self.base.sutured], jnp.asarray(self.frac[self.base.sutured])
         u = jnp.where(e == 0, f * a, jnp.where(e == 1, a + f * L_arc, a + L_arc + f * a))
         return u / L
 
@@ -98,8 +97,7 @@ class TemplateMap:
         inverted triangle: time to mesh the new template afresh (outside the gradient)."""
         p = np.asarray(self.points(float(r), float(a), float(b), float(alpha)))
         t = self.base.triangles
-        e1, e2 = p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 0]]
-        if np.min(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]) <= 0:
+        if np.min(_signed_areas(p, t)) <= 0:
             return True
         return mesh_quality(p, t)["min_angle"] < min_angle
 

@@ -9,10 +9,11 @@ from jaxvalve import equilibrium
 from jaxvalve import valve as V
 from jaxvalve.coaptation import annulus_level
 from jaxvalve.coaptation.smooth import smooth_metrics, smooth_plan
-from jaxvalve.design import BenchmarkPaths, FixedPaths, ValveDesign, along_path
-from jaxvalve.errors import MeshError
+from jaxvalve.design import BenchmarkPaths, FixedPaths, ValveDesign
+from jaxvalve.errors import MeshError, ParameterError
 from jaxvalve.leaflet_mesh import mesh_leaflet
-from jaxvalve.placement import along_polyline
+from jaxvalve.leaflet_mesh import _edge_counts
+from jaxvalve.placement import along_path
 from jaxvalve.root import benchmark_root
 from jaxvalve.scene import Scene
 from jaxvalve.solvers import FIRE
@@ -47,11 +48,19 @@ def test_template_map_reproduces_the_mesher_and_its_jacobian_matches_fd(h):
     for k in range(4):
         fd = _fd(lambda t: tm.points(*t), theta, k, 1e-6)
         np.testing.assert_allclose(np.asarray(J[..., k]), fd, rtol=0, atol=1e-7)
-    # the mapped boundary lies on the new template's edges: same ends, same lengths
-    q = mesh_leaflet(Template(12.5, 6.8, 15.4, 150.0), h)   # same counts at this change
-    if len(q.points) == len(m.points) and len(q.sutured) == len(m.sutured):
-        K = len(q.sutured) + len(q.free) - 2
-        np.testing.assert_allclose(np.asarray(tm.points(*theta))[:K], q.points[:K], atol=1e-9)
+
+
+def test_template_map_boundary_equals_the_mesher_at_a_new_template():
+    """Where the edge node counts agree, the mapped boundary is the mesher's boundary."""
+    new = Template(12.5, 6.8, 15.4, 150.0)
+    assert _edge_counts(new, 1.2) == _edge_counts(Template(*BASE), 1.2)
+    tm = template_map(mesh_leaflet(Template(*BASE), 1.2))
+    q = mesh_leaflet(new, 1.2)
+    K = len(q.sutured) + len(q.free) - 2
+    np.testing.assert_allclose(np.asarray(tm.points(12.5, 6.8, 15.4, 150.0))[:K],
+                               q.points[:K], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(np.asarray(tm.sutured_t(12.5, 6.8, 150.0)), q.sutured_t,
+                               rtol=0, atol=1e-12)
 
 
 def test_remesh_flag_and_wrong_mesh():
@@ -81,15 +90,32 @@ def test_benchmark_height_solves_the_fit_and_its_implicit_derivative():
         assert abs(float(jnp.sum(jnp.linalg.norm(jnp.diff(p, axis=0), axis=1))) - 47.71) < 1e-9
 
 
-def test_along_path_matches_the_host_version_and_is_differentiable():
+def test_along_path_interpolates_by_arc_length_and_is_differentiable():
+    """Points at fraction t lie at arc length t L (checked per segment by hand), a
+    repeated vertex changes nothing, and d/dt matches central differences."""
     rng = np.random.default_rng(3)
     path = np.cumsum(rng.normal(size=(9, 3)), axis=0)
+    seg = np.linalg.norm(np.diff(path, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
     t = np.sort(rng.uniform(0, 1, 15))
-    np.testing.assert_allclose(np.asarray(along_path(jnp.asarray(path), jnp.asarray(t))),
-                               along_polyline(path, t), atol=1e-12)
+    k = np.searchsorted(s, t * s[-1], side="right") - 1
+    want = path[k] + ((t * s[-1] - s[k]) / seg[k])[:, None] * (path[k + 1] - path[k])
+    np.testing.assert_allclose(np.asarray(along_path(path, t)), want, atol=1e-12)
+    doubled = np.insert(path, 4, path[4], axis=0)
+    np.testing.assert_allclose(np.asarray(along_path(doubled, t)), want, atol=1e-12)
+    assert np.all(np.isfinite(np.asarray(along_path(np.vstack([path, path[-1:]]), [1.0]))))
     g = jax.jacfwd(lambda tt: along_path(jnp.asarray(path), tt))(jnp.asarray(t))
-    fd = (along_polyline(path, t + 1e-7) - along_polyline(path, t - 1e-7)) / 2e-7
+    fd = (np.asarray(along_path(path, t + 1e-7)) - np.asarray(along_path(path, t - 1e-7))) / 2e-7
     np.testing.assert_allclose(np.einsum("kik->ki", np.asarray(g)), fd, atol=1e-6)
+
+
+def test_bad_design_inputs_raise_with_the_bound():
+    bp = BenchmarkPaths.from_root(benchmark_root(47.71, wall=False))
+    with pytest.raises(ParameterError, match="sutured_length .* accepted range"):
+        bp.height(200.0)
+    assert np.isnan(float(jax.jit(bp.height)(200.0)))      # traced: NaN, never a wrong H
+    with pytest.raises(ParameterError, match="BenchmarkPaths needs"):
+        BenchmarkPaths.from_root(type("R", (), {"dimensions": {}})())
 
 
 @pytest.fixture(scope="module")
@@ -114,6 +140,10 @@ def test_design_at_base_reproduces_the_valve_and_fixed_positions_have_fd_jacobia
                                    _fd(lambda t: d.x_fixed(t)[fixed], th, k, 1e-6), atol=1e-7)
     # b moves neither the sutured edge nor the root
     assert float(jnp.max(jnp.abs(J[..., 2]))) == 0.0
+    with pytest.raises(ParameterError, match="template b must exceed"):
+        d.ref((12.0, 7.1, 10.0, 160.0))                  # 2b < |AD|
+    with pytest.raises(ParameterError, match="template r must be > 0"):
+        d.x_fixed((-1.0, 7.1, 15.0, 160.0))
 
 
 def test_fixed_paths_put_sutured_nodes_on_the_given_paths(design):
