@@ -189,17 +189,24 @@ def _eq_fwd(solver, problem, params, x0, nbrs, skin):
     return out, (problem, params, y, nb, delta)
 
 
-def _eq_bwd(solver, skin, res, cts):
-    problem, params, y, nb, delta = res
-    g = cts[0]
+def _zeros_like(t):
+    return jax.tree_util.tree_map(
+        lambda a: (None if not jnp.issubdtype(jnp.asarray(a).dtype, jnp.inexact)
+                   else jnp.zeros_like(a)), t)
+
+
+def _adjoint_cotangents(problem, params, y, nb, delta, g):
+    """(d/dparams, d/dx0) of <g, x*> at the equilibrium y: one adjoint solve."""
     mu, vjp = _adjoint_solve(problem, params, y, nb, delta, g)
     gx, gp = vjp(mu)
-    fixed = problem.fixed[:, None]
     # x*[fixed] = x0[fixed] directly, and R depends on x0[fixed] through x*
-    gx0 = (g + gx) * fixed
-    zeros_like = lambda t: jax.tree_util.tree_map(
-        lambda a: None if not jnp.issubdtype(jnp.asarray(a).dtype, jnp.inexact) else jnp.zeros_like(a), t)
-    return (zeros_like(problem), gp, gx0, zeros_like(nb))
+    return gp, (g + gx) * problem.fixed[:, None]
+
+
+def _eq_bwd(solver, skin, res, cts):
+    problem, params, y, nb, delta = res
+    gp, gx0 = _adjoint_cotangents(problem, params, y, nb, delta, cts[0])
+    return (_zeros_like(problem), gp, gx0, _zeros_like(nb))
 
 
 _equilibrium.defvjp(_eq_fwd, _eq_bwd)
@@ -275,3 +282,43 @@ def solve(problem: Problem, params: Params, x0, solver=None, *, throw: bool = Tr
         else:
             _raise_host(result, stats.residual, stats.steps)
     return sol
+
+
+@jax.custom_vjp
+def _implicit(problem, params, x0, x, nbrs, delta):
+    return jnp.where(problem.fixed[:, None], x0, x)
+
+
+def _implicit_fwd(problem, params, x0, x, nbrs, delta):
+    y = _implicit(problem, params, x0, x, nbrs, delta)
+    return y, (problem, params, y, nbrs, delta)
+
+
+def _implicit_bwd(res, g):
+    problem, params, y, nb, delta = res
+    gp, gx0 = _adjoint_cotangents(problem, params, y, nb, delta, g)
+    return (_zeros_like(problem), gp, gx0, jnp.zeros_like(y), _zeros_like(nb),
+            jnp.zeros_like(delta))
+
+
+_implicit.defvjp(_implicit_fwd, _implicit_bwd)
+
+
+def implicit_state(problem: Problem, params: Params, x0, solution: Solution):
+    """The converged ``solution.x`` (N, 3) mm of ``solve(problem, params, x0, ...)`` as a
+    differentiable function of ``params`` and of the fixed positions in x0, without
+    running the solver again: the value is ``solution.x`` (fixed nodes taken from x0), and
+    the reverse-mode derivative is `solve`'s implicit adjoint (one solve K^T mu = g).
+
+    Use it to split a forward solve (run once, on the host) from a gradient evaluation
+    that compiles only the adjoint.  The caller guarantees that ``solution`` converged for
+    these params and fixed positions: a solution that did not converge raises
+    `ConvergenceError` here (the adjoint of a non-equilibrium is meaningless)."""
+    if params.contact is not None and hasattr(params.contact, "force"):
+        raise ParameterError("implicit_state needs a differentiable contact law "
+                             "(SmoothContact); the paper's law has no adjoint")
+    if not isinstance(solution.result, jax.core.Tracer):
+        _raise_host(solution.result, solution.stats.residual, solution.stats.steps)
+    params = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype=solution.x.dtype), params)
+    return _implicit(problem, params, jnp.asarray(x0), jax.lax.stop_gradient(solution.x),
+                     solution.nbrs, jnp.asarray(0.0, solution.x.dtype))

@@ -97,13 +97,7 @@ class Template:
     @property
     def area(self) -> float:
         """Area of the flat template (mm^2), exact (circular segment + polygon)."""
-        p = self.points
-        beta = self._beta
-        segment = 0.5 * self.r ** 2 * (2 * beta - math.sin(2 * beta))
-        poly = np.array([p["B"], p["C"], p["D"], p["E"], p["A"]])
-        x, y = poly[:, 0], poly[:, 1]
-        shoelace = 0.5 * abs(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
-        return float(segment + shoelace)
+        return float(template_area(self.r, self.a, self.b, self.alpha))
 
     def as_dict(self):
         return dataclasses.asdict(self)
@@ -112,6 +106,19 @@ class Template:
 def sutured_length(r, a, alpha):
     """Length of A-B-C-D (mm): 2a + pi r alpha / 180 (plain arithmetic: floats or traced)."""
     return 2 * a + math.pi * r * alpha / 180.0
+
+
+def template_area(r, a, b, alpha, xp=np):
+    """Area (mm^2) of the template: the circular segment below B-C plus the pentagon
+    B-C-D-E-A (counter-clockwise, so the shoelace sum is positive for a valid template).
+    Pure formulas, differentiable with xp = jax.numpy."""
+    _, A, B, C, D, E = corners(r, a, b, alpha, xp)
+    beta = alpha * (math.pi / 360.0)
+    segment = 0.5 * r * r * (2 * beta - xp.sin(2 * beta))
+    poly = xp.stack([B, C, D, E, A])
+    x, y = poly[:, 0], poly[:, 1]
+    shoelace = 0.5 * (xp.sum(x * xp.roll(y, -1)) - xp.sum(y * xp.roll(x, -1)))
+    return segment + shoelace
 
 
 def corners(r, a, b, alpha, xp=np):

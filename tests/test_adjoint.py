@@ -65,3 +65,34 @@ def test_implicit_gradient_matches_central_differences(disk, mat):
     np.testing.assert_allclose(float(jnp.sum(gx0 * d)), num, rtol=1e-4)
     # the equilibrium does not depend on the start position of free nodes
     assert float(jnp.max(jnp.abs(gx0[~fixed]))) == 0.0
+
+
+def test_implicit_state_gives_the_solve_gradient_without_rerunning_the_solver(disk):
+    """`implicit_state(problem, params, x0, solution)` is the converged state as a function
+    of params and fixed positions: same value and same adjoint gradient as `solve`."""
+    from jaxvalve.errors import ConvergenceError
+
+    prob, ref, x0, fixed = disk
+    params = Params(ref=ref, material=StVenantKirchhoff(1.0, 0.45), thickness=0.3,
+                    pressure=mmhg(80.0))
+    sol = equilibrium.solve(prob, params, x0, SOLVER)
+    lift = jnp.asarray(np.where(fixed[:, None], [[0.0, 0.0, 0.3]], 0.0))
+
+    def through_solve(p, x):
+        y = equilibrium.solve(prob, p, x, SOLVER).x
+        return jnp.sum(y[:, 2] ** 2) + jnp.sum(y[:, 0] * y[:, 2])
+
+    def through_state(p, x):
+        y = equilibrium.implicit_state(prob, p, x, sol)
+        return jnp.sum(y[:, 2] ** 2) + jnp.sum(y[:, 0] * y[:, 2])
+
+    g1 = jax.grad(through_solve, argnums=(0, 1))(params, x0)
+    g2 = jax.grad(through_state, argnums=(0, 1))(params, x0)
+    assert float(through_state(params, x0)) == float(through_solve(params, x0))
+    for a, b in zip(jax.tree_util.tree_leaves(g1), jax.tree_util.tree_leaves(g2)):
+        np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=1e-9, atol=1e-12)
+    assert float(jnp.sum(jnp.abs(g2[1] * lift))) > 0       # fixed positions do matter
+    bad = equilibrium.solve(prob, params, x0, NewtonKrylov(rtol=1e-12, max_steps=1),
+                            throw=False)
+    with pytest.raises(ConvergenceError, match="relative residual"):
+        equilibrium.implicit_state(prob, params, x0, bad)

@@ -4,9 +4,9 @@ from __future__ import annotations
 import argparse
 import sys
 
-from . import membrane, simulate
+from . import membrane, optimize, simulate
 
-SUBCOMMANDS = {"membrane": membrane, "simulate": simulate}
+SUBCOMMANDS = {"membrane": membrane, "optimize": optimize, "simulate": simulate}
 
 
 def enable_compilation_cache():

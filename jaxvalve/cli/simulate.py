@@ -63,6 +63,20 @@ def add_parser(sub):
         "simulate", help="close a valve in an aortic root and measure its coaptation",
         description=__doc__, allow_abbrev=False,
         epilog="Example: jaxvalve simulate --out results   (the benchmark valve)")
+    add_scene_arguments(p)
+    g = p.add_argument_group("output")
+    g.add_argument("--out", metavar="DIR",
+                   help="write metrics.json, leaflet_{0,1,2}.vtu and PNG figures here "
+                        "(default: write nothing)")
+    g.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    g.add_argument("--json", action="store_true",
+                   help="print metrics.json to stdout (progress goes to stderr)")
+    return p
+
+
+def add_scene_arguments(p):
+    """The scene: an optional SCENE.toml and one flag per `Scene` field (read back by
+    `make_scene`); shared by the subcommands that take a scene."""
     p.add_argument("scene", nargs="?", metavar="SCENE.toml",
                    help="scene file (TOML, keys = Scene fields); default: the benchmark")
     g = p.add_argument_group("aortic root and template")
@@ -84,14 +98,6 @@ def add_parser(sub):
         for flag, typ, text in flags:
             g.add_argument(flag, type=typ, dest=_field(flag), metavar=typ.__name__.upper(),
                            help=text)
-    g = p.add_argument_group("output")
-    g.add_argument("--out", metavar="DIR",
-                   help="write metrics.json, leaflet_{0,1,2}.vtu and PNG figures here "
-                        "(default: write nothing)")
-    g.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
-    g.add_argument("--json", action="store_true",
-                   help="print metrics.json to stdout (progress goes to stderr)")
-    return p
 
 
 def make_scene(args):

@@ -100,12 +100,14 @@ class SmoothPlan:
 
 
 def smooth_plan(x0, triangles, body, free_edge, *, axis, origin, annulus_level, g_c=0.5,
-                w_cc=5.0, eps_max=0.1, skin=0.5, w=None, n_w=64) -> SmoothPlan:
+                w_cc=5.0, eps_max=0.1, skin=0.5, w=None, n_w=64, capacity=None) -> SmoothPlan:
     """Build the `SmoothPlan` at positions x0 (N, 3) mm (host side, NumPy).
 
     eps_max (mm): largest smoothing width to be used; skin (mm): allowed motion (nodes may
     move up to skin / 2); w (K,) grid of the pair curves, default n_w points on
-    [0, max distance of a node from the axis + skin]."""
+    [0, max distance of a node from the axis + skin]; capacity: length of the padded
+    candidate arrays (default: the count rounded up to 1024).  Plans of equal capacity
+    share compiled metric functions; a capacity below the count raises `ParameterError`."""
     x0 = check_x(x0, name="x0")
     g_c = check_positive("g_c", g_c)
     w_cc = check_positive("w_cc", w_cc)
@@ -117,7 +119,10 @@ def smooth_plan(x0, triangles, body, free_edge, *, axis, origin, annulus_level, 
     clamp = g_c + eps_max + max_edge_length(x0, topo.tri) + skin
     rows, cols = candidate_pairs(x0, topo.tri, topo.body, clamp + 2.0 * skin)
     slot = rows * L + topo.tbody[cols]
-    cap = max(1024, -(-rows.size // 1024) * 1024)
+    cap = max(1024, -(-rows.size // 1024) * 1024) if capacity is None else int(capacity)
+    if cap < rows.size:
+        raise ParameterError(f"capacity must be >= the {rows.size} candidate pairs of this "
+                             f"plan; got {cap}")
     pad = cap - rows.size
     rows = np.concatenate([rows, np.zeros(pad, np.int64)])
     cols = np.concatenate([cols, np.zeros(pad, np.int64)])

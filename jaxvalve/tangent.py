@@ -1,0 +1,185 @@
+"""An assembled sparse approximation of the valve's stiffness K = -dR/dx, and the adjoint
+solve it preconditions.
+
+`assemble(problem, params, x, nbrs)` sums, as a scipy CSC matrix over the free dofs:
+* the 9x9 Hessians of each triangle's strain energy (`assembly._element_hessians`);
+* the 12x12 Hessians of each bending hinge (`bending.bending_energy` on the hinge's 4 nodes);
+* the 9x9 Jacobian of the follower pressure load of each triangle (with its sign: the
+  pressure Jacobian is not symmetric);
+* a Gauss-Newton term k * omega * A_i/2 * g g^T per pruned soft-min contact pair (node i to a
+  triangle, g the gradient of the distance), leaving out the distance's curvature.
+It is close to K, not equal: it serves as a preconditioner, and every solve here runs GMRES on
+the exact operator (Jacobian-vector products of the residual by autodiff).
+
+`adjoint_solve(problem, params, x, nbrs, g)` solves K^T mu = g on the free dofs with GMRES
+on exact vector-Jacobian products, preconditioned by a sparse LU of the assembled K^T
+(scipy `splu`), on the host.  It is the fast alternative to the block-Jacobi GMRES inside
+`equilibrium.solve`'s adjoint (measured on the benchmark valve at h = 1.5 mm: README,
+"Optimisation").  Returns mu (N, 3) and an `AdjointReport` (iterations, relative residual,
+seconds); it raises `ConvergenceError` when GMRES misses its tolerance.
+"""
+from __future__ import annotations
+
+import dataclasses
+import functools
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from . import assembly
+from .bending import bending_energy, plate_modulus
+from .contact.geometry import closest_point_soa, point_triangle_distance_soa
+from .contact.smooth import _columns
+from .contact.soft_pairs import SoftPairs
+from .errors import ConvergenceError
+
+__all__ = ["assemble", "adjoint_solve", "AdjointReport"]
+
+
+@dataclasses.dataclass(frozen=True)
+class AdjointReport:
+    """iterations: GMRES iterations; residual: ||K^T mu - g|| / ||g||; seconds: wall time
+    (assembly, factorisation and GMRES); nnz: nonzeros of the assembled matrix."""
+
+    iterations: int
+    residual: float
+    seconds: float
+    nnz: int
+
+
+def _local_hinges(problem):
+    """Per hinge: its 4 nodes and its two triangles in local (0..3) indices (host)."""
+    hin = np.asarray(problem.hinges)
+    tri = np.asarray(problem.triangles)
+    nodes = hin[:, :4]
+    loc = np.empty((hin.shape[0], 2, 3), np.int32)
+    for s, col in enumerate((4, 5)):
+        t = tri[hin[:, col]]                                     # (K, 3) global ids
+        loc[:, s] = np.argmax(t[:, :, None] == nodes[:, None, :], axis=2)
+    return nodes, loc
+
+
+def _pressure_blocks(x, problem, params):
+    """(M, 9, 9) Jacobian d(F_pressure)/dx of each triangle, F = P A n / 3 at each node."""
+    def f(xe):
+        xe = xe.reshape(3, 3)
+        an = 0.5 * jnp.cross(xe[1] - xe[0], xe[2] - xe[0])
+        return jnp.tile(params.pressure / 3.0 * an, 3)
+    return jax.vmap(jax.jacfwd(f))(x[problem.triangles].reshape(-1, 9))
+
+
+def _contact_blocks(x, problem, params, ref, pairs: SoftPairs):
+    """(P, 12, 12) Gauss-Newton contact blocks and their node ids (P, 4)."""
+    c, base, tri, N = params.contact, pairs.base, problem.triangles, problem.n_nodes
+    ok = jnp.arange(pairs.soft_capacity) < pairs.n
+    g = jnp.where(ok, pairs.group, 0)
+    t = jnp.where(ok, pairs.tri, 0)
+    node = jnp.clip(base.group_node, 0, N - 1)[g]
+    v = tri[t]
+    idx = jnp.stack([node, v[:, 0], v[:, 1], v[:, 2]])
+    cols = [_columns(x, idx[k]) for k in range(4)]
+    d, _, _, side_p = point_triangle_distance_soa(*cols, side=True)
+    d = jnp.where(ok, d, jnp.inf)
+    R = base.rows
+    dmin = jax.ops.segment_min(d, g, num_segments=R)
+    side = jax.ops.segment_max(jnp.where(ok & (d <= dmin[g]), side_p, -1.0), g,
+                               num_segments=R)
+    w = jnp.where(ok, jnp.exp(-(d - jnp.where(ok, dmin[g], 0.0)) / c.softness), 0.0)
+    den = jax.ops.segment_sum(w, g, num_segments=R)
+    num = jax.ops.segment_sum(jnp.where(ok, w * d, 0.0), g, num_segments=R)
+    s = side * num / jnp.where(den > 0, den, 1.0)
+    live = (side * dmin < c.gap) & (den > 0) & (s < c.gap)
+    om = w / jnp.where(den[g] > 0, den[g], 1.0)
+    u, vv, ww = closest_point_soa(*cols)
+    p, a, b, cc = cols
+    e = jnp.stack([p[k] - (u * a[k] + vv * b[k] + ww * cc[k]) for k in range(3)], -1)
+    n = e / jnp.where(d > 0, d, 1.0)[:, None]
+    coef = jnp.stack([jnp.ones_like(u), -u, -vv, -ww], -1)
+    gv = (coef[:, :, None] * n[:, None, :]).reshape(-1, 12)
+    wt = jnp.where(ok & live[g], 0.5 * ref.node_area[node] * c.stiffness * om, 0.0)
+    return wt[:, None, None] * gv[:, :, None] * gv[:, None, :], idx.T
+
+
+@functools.partial(jax.jit, static_argnums=())
+def _blocks(x, problem, params, nbrs, hinge_nodes, hinge_tris):
+    ref = assembly.prepare(problem, params)
+    out = [(assembly._element_hessians(x, problem, params, ref)
+            - _pressure_blocks(x, problem, params), problem.triangles)]
+    if ref.hinge_w is not None and params.bending is not None:
+        D = params.bending.scale * plate_modulus(params.material, params.thickness)
+        one = lambda xh, tl, w: bending_energy(xh, jnp.array([[0, 1, 2, 3, 0, 1]]),
+                                               w[None], D, tl)
+        out.append((jax.vmap(jax.hessian(one))(x[hinge_nodes], hinge_tris, ref.hinge_w)
+                    .reshape(-1, 12, 12), hinge_nodes))
+    if isinstance(nbrs, SoftPairs) and params.contact is not None:
+        out.append(_contact_blocks(x, problem, params, ref, nbrs))
+    return out
+
+
+def assemble(problem, params, x, nbrs=None):
+    """The approximate stiffness K (3F x 3F scipy CSC, F free nodes, dofs node-major)."""
+    hn, ht = _local_hinges(problem) if problem.hinges is not None else (None, None)
+    parts = jax.device_get(_blocks(jnp.asarray(x), problem, params, nbrs,
+                                   None if hn is None else jnp.asarray(hn),
+                                   None if ht is None else jnp.asarray(ht)))
+    rows, cols, vals = [], [], []
+    for H, nodes in parts:
+        dof = (3 * np.asarray(nodes)[:, :, None] + np.arange(3)).reshape(len(H), -1)
+        k = dof.shape[1]
+        rows.append(np.repeat(dof, k, axis=1).ravel())
+        cols.append(np.tile(dof, (1, k)).ravel())
+        vals.append(np.asarray(H).reshape(len(H), -1).ravel())
+    n = 3 * problem.n_nodes
+    K = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                      shape=(n, n))
+    fdof = np.repeat(np.asarray(problem.free), 3)
+    return K[fdof][:, fdof].tocsc()
+
+
+@jax.jit
+def _vjp_x(x, problem, params, nbrs, v):
+    ref = assembly.prepare(problem, params)
+    R = lambda z: assembly.residual(z, problem, params, ref, nbrs)
+    return jax.vjp(R, x)[1](v)[0]
+
+
+def adjoint_solve(problem, params, x, nbrs, g, *, rtol=1e-10, maxiter=300):
+    """mu (N, 3) with K^T mu = g on the free dofs (K = -dR/dx at the equilibrium x); mu is
+    zero on fixed nodes.  GMRES (scipy) on exact VJPs, preconditioned by the sparse LU of
+    the assembled approximation of K^T.  Returns (mu, `AdjointReport`)."""
+    t0 = time.perf_counter()
+    x = jnp.asarray(x)
+    free = np.asarray(problem.free)
+    fdof = np.repeat(free, 3)
+    N = problem.n_nodes
+    K = assemble(problem, params, x, nbrs)
+    lu = spla.splu(K.T.tocsc(), permc_spec="MMD_AT_PLUS_A")
+    b = np.asarray(g, float).reshape(-1)[fdof]
+    nb = float(np.linalg.norm(b))
+    if nb == 0.0:
+        return np.zeros((N, 3)), AdjointReport(0, 0.0, time.perf_counter() - t0, K.nnz)
+
+    def KT(vf):
+        v = np.zeros(3 * N)
+        v[fdof] = vf
+        return -np.asarray(_vjp_x(x, problem, params, nbrs,
+                                  jnp.asarray(v.reshape(N, 3)))).reshape(-1)[fdof]
+
+    A = spla.LinearOperator((b.size, b.size), matvec=KT, dtype=float)
+    M = spla.LinearOperator((b.size, b.size), matvec=lu.solve, dtype=float)
+    count = [0]
+    mu_f, _ = spla.gmres(A, b, M=M, rtol=rtol, atol=0.0, restart=60, maxiter=maxiter // 60 + 1,
+                         callback=lambda r: count.__setitem__(0, count[0] + 1),
+                         callback_type="pr_norm")
+    res = float(np.linalg.norm(KT(mu_f) - b) / nb)
+    rep = AdjointReport(count[0], res, time.perf_counter() - t0, int(K.nnz))
+    if not np.isfinite(res) or res > 100 * rtol:
+        raise ConvergenceError(f"adjoint solve did not converge: relative residual {res:.3e} "
+                               f"after {count[0]} GMRES iterations (tolerance {rtol:g})")
+    mu = np.zeros(3 * N)
+    mu[fdof] = mu_f
+    return mu.reshape(N, 3), rep

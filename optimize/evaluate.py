@@ -1,0 +1,288 @@
+"""One scene's closures and smooth coaptation metrics as functions of theta = (r, a, b).
+
+`Evaluator(scene, objective)` owns the mesh, the valve, the differentiable design map
+(`jaxvalve.design`) and two compiled functions:
+
+* ``forward(rab, warm)``: the closures the objective needs (3 mmHg for h_E, 80 mmHg for the
+  other metrics; a closure no target needs is skipped), each warm-started from the
+  previous evaluation's state with the sutured nodes moved to the new template, then the
+  smooth metrics on a `SmoothPlan` built at the new state, and the objective.
+* ``gradient(ev)``: the objective's value and its gradient with respect to (r, a, b).
+  The equilibria enter through `equilibrium.implicit_state`, so the gradient costs one
+  adjoint solve per closure and never re-runs or unrolls the solver.
+
+Changing theta changes only traced values: nothing recompiles, unless the mapped mesh
+degrades (an angle below ``min_angle``), when the new template is meshed afresh (a new
+``generation``, with new shapes, so the functions compile again).
+"""
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxvalve import equilibrium
+from jaxvalve import valve as V
+from jaxvalve.coaptation import annulus_level
+from jaxvalve.coaptation.smooth import smooth_metrics, smooth_plan
+from jaxvalve.design import ValveDesign
+from jaxvalve.errors import ConvergenceError, ParameterError
+from jaxvalve.leaflet_mesh import mesh_leaflet
+from jaxvalve.solvers import RESULTS
+from jaxvalve.template import Template
+from jaxvalve.template_map import template_map
+
+from .objective import Objective
+from .targets import METRICS
+
+__all__ = ["Evaluator", "Evaluation"]
+
+LOAD_ORDER = ("he", "closed")
+
+
+@dataclasses.dataclass(frozen=True)
+class Evaluation:
+    """The objective at one template.
+
+    rab (3,) mm; generation: the mesh it was computed on; states {load: (x0 (N, 3),
+    `Solution`)}; plans {load: SmoothPlan}; metrics {name: float} (smooth, METRICS
+    units); terms {name: float}; value: f; d_cc: commissure distance (mm); solves: one
+    dict per closure (load, pressure, converged, result, steps, residual, seconds);
+    converged: every closure converged (else value is inf and ``reason`` says why)."""
+
+    rab: np.ndarray
+    generation: int
+    states: dict
+    plans: dict
+    metrics: dict
+    terms: dict
+    value: float
+    d_cc: float
+    solves: tuple
+    converged: bool
+    reason: str = ""
+
+
+class Evaluator:
+    """scene: the `jaxvalve.Scene` (root, mesh size h, material, loads, solver tolerance);
+    its r, a, b are the start and its alpha stays fixed.  objective: `Objective`.
+    eps (mm): smoothing width of the metrics; min_angle (degrees): remesh threshold;
+    mesh_at: (r, a, b) to mesh at (default the start; a resumed run meshes where the
+    interrupted one last meshed)."""
+
+    def __init__(self, scene, objective: Objective, *, eps: float = 0.1,
+                 min_angle: float = 15.0, progress=None, mesh_at=None):
+        if scene.solver != "fire" or scene.contact != "smooth":
+            raise ParameterError("optimisation needs solver='fire' and contact='smooth' "
+                                 "(the paper's contact law has no adjoint)")
+        if not (0 < eps <= 0.5):
+            raise ParameterError(f"eps must be in (0, 0.5] mm; got {eps}")
+        self.scene, self.objective, self.eps, self.min_angle = scene, objective, eps, min_angle
+        self.loads = tuple(l for l in LOAD_ORDER if l in objective.loads)
+        self.pressure = {"he": scene.he_pressure, "closed": scene.pressure}
+        self.solver = scene.make_solver()
+        self.material, self.contact = scene.material(), scene.contact_law()
+        self.bending = scene.bending_law()
+        self.say = progress or (lambda s: None)
+        self.generation = 0
+        self.compiles = 0
+        self._build(np.array([scene.r, scene.a, scene.b] if mesh_at is None else mesh_at,
+                             float))
+
+    # ------------------------------------------------------------------ setup
+    def theta(self, rab):
+        return jnp.concatenate([jnp.asarray(rab, jnp.float64),
+                                jnp.asarray([self.scene.alpha], jnp.float64)])
+
+    def _build(self, rab):
+        sc = self.scene.replace(r=float(rab[0]), a=float(rab[1]), b=float(rab[2]))
+        lm = mesh_leaflet(sc.template(), sc.h)
+        self.valve = V.build_valve(sc.load_root(), lm)
+        self.design = ValveDesign.build(self.valve, template_map(lm))
+        self.base = {l: self.valve.params(self.material, self.pressure[l], self.contact,
+                                          sc.thickness, np.deg2rad(sc.fibre_angle),
+                                          self.bending) for l in self.loads}
+        self.generation += 1
+        self.mesh_at = np.asarray(rab, float)
+        self.capacity = None
+        self._metrics_jit = jax.jit(lambda x, plan: smooth_metrics(x, plan, self.eps))
+        self._grad_jit = jax.jit(jax.value_and_grad(
+            lambda rab, st, pl, ar: self._terms(rab, None, st, pl, ar, True), has_aux=True))
+        self._direct_jit = jax.jit(jax.value_and_grad(
+            lambda rab, xs, st, pl, ar: self._terms(rab, xs, st, pl, ar, False),
+            argnums=(0, 1), has_aux=True))
+        self._pull_jit = jax.jit(self._pullback, static_argnums=(1,))
+        self._dcc_jit = jax.jit(self.d_cc)
+        self.say(f"mesh generation {self.generation}: {len(lm.triangles)} triangles a "
+                 f"leaflet at (r, a, b) = {tuple(np.round(rab, 4))}")
+
+    def d_cc(self, theta):
+        """Distance (mm) between a leaflet's two commissures (ends of its path)."""
+        L = 2 * theta[1] + jnp.pi * theta[0] * theta[3] / 180.0
+        p = self.design.paths(L)[0]
+        return jnp.linalg.norm(jnp.asarray(p)[-1] - jnp.asarray(p)[0])
+
+    def _plan(self, x):
+        v = self.valve
+        s0 = annulus_level(x, np.asarray(v.problem.fixed), v.body, v.root.axis, v.root.origin)
+        kw = dict(axis=v.root.axis, origin=v.root.origin, annulus_level=s0,
+                  g_c=self.scene.g_c, eps_max=self.eps)
+        if self.capacity is not None:
+            try:
+                return smooth_plan(x, v.triangles, v.body, v.free_edge,
+                                   capacity=self.capacity, **kw)
+            except ParameterError:       # more candidates than the capacity: grow it
+                pass
+        plan = smooth_plan(x, v.triangles, v.body, v.free_edge, **kw)
+        # room for 50 % more candidate pairs before the metric functions compile again
+        self.capacity = int(np.ceil(1.5 * plan.cand_node.shape[0] / 1024) * 1024)
+        self.compiles += 1
+        return smooth_plan(x, v.triangles, v.body, v.free_edge, capacity=self.capacity, **kw)
+
+    # ------------------------------------------------------------------ forward
+    def feasible(self, rab) -> str:
+        """'' when (r, a, b) is a valid template inside the bounds, else the reason."""
+        rab = np.asarray(rab, float)
+        if np.any(rab < self.objective.lower - 1e-12) or np.any(rab > self.objective.upper + 1e-12):
+            return f"(r, a, b) = {tuple(rab)} outside the bounds {self.objective.bounds}"
+        try:
+            Template(*rab, self.scene.alpha)
+        except ParameterError as e:
+            return str(e)
+        th = self.theta(rab)
+        s = self.objective.slacks(th, self.scene.alpha, self._dcc_jit(th))
+        bad = [f"{k} slack {float(v):.3f} mm" for k, v in s.items() if float(v) <= 0]
+        return "infeasible template: " + ", ".join(bad) if bad else ""
+
+    def forward(self, rab, warm: Evaluation | None = None) -> Evaluation:
+        """Close the valve(s) for (r, a, b) mm and evaluate the objective."""
+        rab = np.asarray(rab, float)
+        why = self.feasible(rab)
+        if why:
+            raise ParameterError(why)
+        th = self.theta(rab)
+        if self.design.tmap.needs_remesh(*np.asarray(th), min_angle=self.min_angle):
+            self._build(rab)
+            warm = None
+        if isinstance(warm, Evaluation) and warm.generation != self.generation:
+            warm = None
+        states, plans, solves, metrics = {}, {}, [], {}
+        prev = None
+        for load in self.loads:
+            if isinstance(warm, dict):                 # {load: x (N, 3)}, e.g. a checkpoint
+                seed = warm[load]
+            elif warm is not None:
+                seed = warm.states[load][1].x
+            else:
+                seed = self.valve.x_start if prev is None else prev
+            x0 = self.design.x_fixed(th, x_free=jnp.asarray(seed))
+            params = self.base[load].replace(ref=self.design.ref(th))
+            t0 = time.perf_counter()
+            sol = equilibrium.solve(self.valve.problem, params, x0, self.solver, throw=False)
+            x = np.asarray(sol.x)
+            ok = sol.converged and bool(np.all(np.isfinite(x)))
+            solves.append(dict(load=load, pressure=self.pressure[load], converged=ok,
+                               result=RESULTS(int(sol.result)).name,
+                               steps=int(sol.stats.steps),
+                               residual=float(sol.stats.residual),
+                               seconds=time.perf_counter() - t0))
+            if not ok:
+                reason = f"closure at {self.pressure[load]:g} mmHg: {sol.describe()}"
+                return Evaluation(rab, self.generation, states, plans, metrics, {},
+                                  float("inf"), float("nan"), tuple(solves), False, reason)
+            states[load] = (x0, sol)
+            plans[load] = self._plan(x)
+            m = {k: float(v) for k, v in self._metrics_jit(sol.x, plans[load]).items()
+                 if np.ndim(v) == 0}
+            for name, (ld, key, fac, _, _) in METRICS.items():
+                if ld == load:
+                    metrics[name] = fac * m[key]
+            prev = x
+        d_cc = float(self._dcc_jit(th))
+        terms = {k: float(v) for k, v in self.objective.terms(
+            th, self.scene.alpha, metrics, d_cc, self.area_ref).items()}
+        metrics["area"] = Template(*rab, self.scene.alpha).area
+        value = float(sum(terms.values()))
+        reason = "" if np.isfinite(value) else f"the objective is not finite: {terms}"
+        return Evaluation(rab, self.generation, states, plans, metrics, terms, value, d_cc,
+                          tuple(solves), bool(np.isfinite(value)), reason)
+
+    @property
+    def area_ref(self):
+        a = self.objective.area_ref
+        return Template(self.scene.r, self.scene.a, self.scene.b, self.scene.alpha).area \
+            if a is None else a
+
+    # ------------------------------------------------------------------ gradient
+    def _terms(self, rab, xs, states, plans, area_ref, implicit):
+        """The objective from the closed states; with ``implicit`` the states enter through
+        `equilibrium.implicit_state` (JAX adjoint), else as x = x* on free nodes (held) and
+        the template's sutured positions on fixed nodes."""
+        th = jnp.concatenate([rab, jnp.asarray([self.scene.alpha], rab.dtype)])
+        metrics = {}
+        fixed = self.valve.problem.fixed[:, None]
+        for load in self.loads:
+            x0, sol = states[load]
+            x0 = self.design.x_fixed(th, x_free=x0)
+            if implicit:
+                params = self.base[load].replace(ref=self.design.ref(th))
+                x = equilibrium.implicit_state(self.valve.problem, params, x0, sol)
+            else:
+                x = jnp.where(fixed, x0, xs[load])
+            m = smooth_metrics(x, plans[load], self.eps)
+            for name, (ld, key, fac, _, _) in METRICS.items():
+                if ld == load:
+                    metrics[name] = fac * m[key]
+        terms = self.objective.terms(th, self.scene.alpha, metrics, self.d_cc(th), area_ref)
+        return sum(terms.values()), terms
+
+    def _pullback(self, rab, load, x, nbrs, mu):
+        """d/d(r, a, b) of <mu, R(x with the template's sutured nodes, params(theta))>."""
+        from jaxvalve import assembly
+
+        def f(rab):
+            th = jnp.concatenate([rab, jnp.asarray([self.scene.alpha], rab.dtype)])
+            params = self.base[load].replace(ref=self.design.ref(th))
+            xx = self.design.x_fixed(th, x_free=x)
+            ref = assembly.prepare(self.valve.problem, params)
+            R = assembly.residual(xx, self.valve.problem, params, ref, nbrs)
+            return jnp.sum(mu * R)
+        return jax.grad(f)(rab)
+
+    def gradient(self, ev: Evaluation, adjoint: str = "lu"):
+        """(value, grad (3,), info) of the objective at a converged evaluation.
+
+        adjoint 'lu': K^T mu = df/dx by GMRES preconditioned with a sparse LU of the
+        assembled stiffness (`jaxvalve.tangent`, host); 'jax': `equilibrium.implicit_state`
+        (block-Jacobi GMRES inside JAX).  info: {'adjoint': [AdjointReport per closure]}.
+        Raises `ConvergenceError` when ``ev`` did not converge (no adjoint of a
+        non-equilibrium) or an adjoint solve missed its tolerance."""
+        from jaxvalve.tangent import adjoint_solve
+
+        if not ev.converged:
+            raise ConvergenceError(f"no gradient at (r, a, b) = {tuple(ev.rab)}: {ev.reason}")
+        if ev.generation != self.generation:
+            raise ParameterError("this evaluation belongs to an earlier mesh generation")
+        rab = jnp.asarray(ev.rab)
+        area_ref = jnp.asarray(self.area_ref)
+        if adjoint == "jax":
+            (v, _), g = self._grad_jit(rab, ev.states, ev.plans, area_ref)
+            return float(v), np.asarray(g), {"adjoint": []}
+        if adjoint != "lu":
+            raise ParameterError(f"adjoint must be 'lu' or 'jax'; got {adjoint!r}")
+        xs = {l: ev.states[l][1].x for l in self.loads}
+        (v, _), (g, gx) = self._direct_jit(rab, xs, ev.states, ev.plans, area_ref)
+        g = np.asarray(g)
+        reports = []
+        th = self.theta(ev.rab)
+        for load in self.loads:
+            x0, sol = ev.states[load]
+            params = self.base[load].replace(ref=self.design.ref(th))
+            mu, rep = adjoint_solve(self.valve.problem, params, sol.x, sol.nbrs, gx[load])
+            reports.append(rep)
+            g = g + np.asarray(self._pull_jit(rab, load, sol.x, sol.nbrs, jnp.asarray(mu)))
+        return float(v), g, {"adjoint": reports}

@@ -1,0 +1,179 @@
+"""`optimize_template(...)`: the whole run (the Python face of ``jaxvalve optimize``)."""
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxvalve import Scene
+from jaxvalve.errors import ConvergenceError, ParameterError
+
+from . import loop
+from .evaluate import Evaluator
+from .objective import Objective
+from .trajectory import plot_run, read_checkpoint, write_checkpoint, write_trajectory
+
+__all__ = ["optimize_template", "OptimizationResult"]
+
+
+@dataclasses.dataclass(frozen=True)
+class OptimizationResult:
+    """rab (3,) mm: the final (r, a, b); value: its objective; records: one dict per
+    iteration; reason: why the run stopped; failed: it stopped on an error (a start that
+    does not close, a non-finite objective) rather than by a stopping rule; counts:
+    {'forward', 'gradient'}; seconds: wall time of the iterations; compile_s: of which
+    JAX compilation; evaluation: the final `Evaluation`; files: paths written."""
+
+    rab: np.ndarray
+    value: float
+    records: list
+    reason: str
+    failed: bool
+    counts: dict
+    seconds: float
+    compile_s: float
+    evaluation: Any
+    files: tuple = ()
+
+    @property
+    def template(self) -> dict:
+        return dict(r=float(self.rab[0]), a=float(self.rab[1]), b=float(self.rab[2]))
+
+
+def _config(scene, objective, optimizer, options):
+    return dict(scene=scene.as_dict(), objective=objective.as_dict(), optimizer=optimizer,
+                options=options)
+
+
+def optimize_template(scene: Scene | None = None, objective: Objective | None = None, *,
+                      optimizer: str = "lbfgs", max_iter: int = 30, max_step: float = 1.0,
+                      gtol: float = 1e-3, ftol: float = 1e-5, eps: float = 0.1,
+                      adjoint: str = "lu", out=None, resume: bool = False,
+                      figures: bool = True, evaluator: Evaluator | None = None,
+                      progress: Callable[[str], None] | None = None) -> OptimizationResult:
+    """Tune (r, a, b) of ``scene``'s template (its r, a, b are the start; alpha, the root,
+    mesh size h, material and loads are the scene's) to minimise ``objective``.
+
+    out: directory for trajectory.csv/json, checkpoint.npz and optimisation.png (written
+    after every iteration); resume: continue the run saved in ``out`` (same scene,
+    objective and options, else `ParameterError`), giving the same iterates as an
+    uninterrupted run.  evaluator: an `Evaluator` for this scene and objective to reuse
+    (its compiled functions; e.g. in a notebook).  progress: called with one line per
+    iteration (e.g. ``print``).
+    """
+    from jaxvalve.simulation import compile_timer
+
+    scene = Scene() if scene is None else scene
+    objective = Objective() if objective is None else objective
+    if objective.area_ref is None:
+        objective = dataclasses.replace(objective, area_ref=scene.template().area)
+    if evaluator is not None and (evaluator.scene != scene or evaluator.eps != eps
+                                  or evaluator.objective.targets != objective.targets):
+        raise ParameterError("the evaluator was built for another scene, eps or targets")
+    for name, v in (("max_iter", max_iter),):
+        if not (isinstance(v, int) and v >= 0):
+            raise ParameterError(f"{name} must be an integer >= 0; got {v!r}")
+    for name, v in (("max_step", max_step), ("gtol", gtol), ("ftol", ftol)):
+        if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
+            raise ParameterError(f"{name} must be a finite number > 0; got {v!r}")
+    options = dict(max_iter=max_iter, max_step=max_step, gtol=gtol, ftol=ftol, eps=eps,
+                   adjoint=adjoint)
+    config = _config(scene, objective, optimizer, options)
+    opt = loop.make_optimizer(optimizer)
+    say = progress or (lambda s: None)
+    out = None if out is None else Path(out)
+    if resume and out is None:
+        raise ParameterError("resume needs the run directory (out)")
+    kw = dict(adjoint=adjoint, max_step=max_step, gtol=gtol, ftol=ftol, max_iter=max_iter,
+              line_search=(optimizer == "lbfgs"))
+    t_start = time.perf_counter()
+    with compile_timer() as ct:
+        if resume:
+            saved = read_checkpoint(out)
+            same = lambda c: {**c, "options": {k: v for k, v in c["options"].items()  # noqa
+                                               if k != "max_iter"}}
+            if same(json.loads(json.dumps(config))) != same(saved["trajectory"]["config"]):
+                raise ParameterError(f"cannot resume {str(out)!r}: its scene, objective or "
+                                     "options differ from this run's")
+            ck = saved["checkpoint"]
+            records = saved["trajectory"]["records"]
+            evaluator = _evaluator(evaluator, scene, objective, eps, ck["mesh_at"])
+            ev = evaluator.forward(ck["rab"], {l: jnp.asarray(ck[f"x_{l}"])
+                                               for l in evaluator.loads})
+            if not ev.converged:
+                raise ParameterError(f"cannot resume {str(out)!r}: {ev.reason}")
+            treedef = jax.tree_util.tree_structure(opt.init(ck["rab"]))
+            n = treedef.num_leaves
+            opt_state = jax.tree_util.tree_unflatten(treedef, [jnp.asarray(ck[f"opt_{i}"])
+                                                               for i in range(n)])
+            counts = dict(forward=int(ck["forward"]), gradient=int(ck["gradient"]))
+            state = loop.LoopState(int(ck["iteration"]), ev, float(ck["value"]),
+                                   np.asarray(ck["grad"]), opt_state, counts,
+                                   float(ck["seconds"]), record=records[-1])
+            say(f"resumed at iteration {state.iteration}: objective {state.value:.6g}")
+        else:
+            evaluator = _evaluator(evaluator, scene, objective, eps, None)
+            try:
+                state = loop.init(evaluator, opt, adjoint=adjoint)
+            except ConvergenceError as e:                 # reported in the run directory
+                if out is not None:
+                    write_trajectory(out, config, [], dict(done=True, failed=True,
+                                                           reason=str(e)))
+                raise
+            records = [state.record]
+            say(_line(state.record))
+            if out is not None:
+                write_trajectory(out, config, records, dict(done=False))
+                write_checkpoint(out, state, evaluator)
+        failed = False
+        while not state.done and state.iteration < max_iter:
+            try:
+                state = loop.update(evaluator, opt, state, **kw)
+            except Exception as e:                      # noqa: BLE001 - reported, re-raised
+                if out is not None:
+                    write_trajectory(out, config, records,
+                                     dict(done=True, failed=True, reason=str(e)))
+                raise
+            if state.record is not records[-1] and state.record.get("iteration") == state.iteration \
+                    and state.iteration > records[-1]["iteration"]:
+                records.append(state.record)
+                say(_line(state.record))
+            if out is not None:
+                write_trajectory(out, config, records, dict(done=state.done, reason=state.reason))
+                write_checkpoint(out, state, evaluator)
+        reason = state.reason or f"reached max_iter = {max_iter}"
+        failed = "not finite" in reason
+    seconds = time.perf_counter() - t_start
+    say(f"stopped: {reason}")
+    files = ()
+    if out is not None:
+        write_trajectory(out, config, records, dict(done=True, failed=failed, reason=reason,
+                                                    seconds=seconds, compile_s=ct.seconds))
+        files = (out / "trajectory.json", out / "trajectory.csv", out / "checkpoint.npz")
+        if figures:
+            files = files + (plot_run(out, records, scene.alpha, objective.targets),)
+    return OptimizationResult(np.asarray(state.rab), state.value, records, reason, failed,
+                              state.counts, seconds, ct.seconds, state.evaluation, files)
+
+
+def _evaluator(given, scene, objective, eps, mesh_at):
+    if given is None:
+        return Evaluator(scene, objective, eps=eps, mesh_at=mesh_at)
+    start = np.array([scene.r, scene.a, scene.b]) if mesh_at is None else np.asarray(mesh_at)
+    if not np.array_equal(given.mesh_at, start):
+        given._build(start)          # the run's mesh (a remesh in an earlier run moved it)
+    given.objective = objective
+    return given
+
+
+def _line(r):
+    ms = "  ".join(f"{k[2:]} {v:.3f}" for k, v in r.items() if k.startswith("m:"))
+    return (f"it {r['iteration']:3d}  r {r['r']:.4f}  a {r['a']:.4f}  b {r['b']:.4f}  "
+            f"f {r['objective']:.6g}  |g| {r['grad_norm']:.3g}  {ms}  "
+            f"[{r['forward']} fwd, {r['gradient']} grad, {r['seconds']:.1f} s]")
