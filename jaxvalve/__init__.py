@@ -10,7 +10,8 @@ from .equilibrium import solve  # noqa: E402
 from .problem import Params, Problem, make_problem, mmhg  # noqa: E402
 from .scene import Scene  # noqa: E402
 from .simulation import SimulationResult, simulate  # noqa: E402
+from .batch import BatchResult, simulate_batch  # noqa: E402
 
 __version__ = "0.1.0"
 __all__ = ["solve", "Params", "Problem", "make_problem", "mmhg", "Scene", "simulate",
-           "SimulationResult", "__version__"]
+           "SimulationResult", "simulate_batch", "BatchResult", "__version__"]

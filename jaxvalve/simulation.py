@@ -170,6 +170,18 @@ def _quiet(msg):
     pass
 
 
+def build_scene_valve(scene: Scene, say=_quiet):
+    """The scene's `Valve`: root, template mesh at scene.h, placement (each step reported
+    to ``say``)."""
+    say("building the aortic root")
+    root = scene.load_root()
+    say(f"meshing the template (r={scene.r}, a={scene.a}, b={scene.b}, "
+        f"alpha={scene.alpha}, h={scene.h} mm)")
+    lmesh = mesh_leaflet(scene.template(), scene.h)
+    say(f"placing 3 x {len(lmesh.triangles)} triangles in the root")
+    return V.build_valve(root, lmesh)
+
+
 def simulate(scene: Scene | None = None, *, progress: Callable[[str], None] | None = None,
              throw: bool = True, valve=None) -> SimulationResult:
     """Close the valve of ``scene`` (default: the benchmark `Scene()`) and measure it.
@@ -183,14 +195,7 @@ def simulate(scene: Scene | None = None, *, progress: Callable[[str], None] | No
     say = progress or _quiet
     t_all = time.perf_counter()
     t0 = time.perf_counter()
-    if valve is None:
-        say("building the aortic root")
-        root = scene.load_root()
-        say(f"meshing the template (r={scene.r}, a={scene.a}, b={scene.b}, "
-            f"alpha={scene.alpha}, h={scene.h} mm)")
-        lmesh = mesh_leaflet(scene.template(), scene.h)
-        say(f"placing 3 x {len(lmesh.triangles)} triangles in the root")
-        valve = V.build_valve(root, lmesh)
+    valve = build_scene_valve(scene, say) if valve is None else valve
     setup = time.perf_counter() - t0
     material, contact, solver = scene.material(), scene.contact_law(), scene.make_solver()
     bending = scene.bending_law()

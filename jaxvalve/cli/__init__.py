@@ -4,9 +4,10 @@ from __future__ import annotations
 import argparse
 import sys
 
-from . import membrane, optimize, simulate
+from . import membrane, optimize, simulate, sweep
 
-SUBCOMMANDS = {"membrane": membrane, "optimize": optimize, "simulate": simulate}
+SUBCOMMANDS = {"membrane": membrane, "optimize": optimize, "simulate": simulate,
+               "sweep": sweep}
 
 
 def enable_compilation_cache():

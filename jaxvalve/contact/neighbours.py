@@ -55,6 +55,7 @@ import numpy as np
 import jax
 import jax.numpy as jnp
 
+from ..batching import batch_any, batch_max, cond_each
 from ..errors import NeighbourListOverflow, ParameterError
 from .geometry import point_triangle_distance_np
 
@@ -196,7 +197,11 @@ def bucket_sizes(n: int, smallest: int = 64, most: int = 4, factor: int = 4) -> 
 
 
 def bucket_index(sizes, used):
-    """Index of the shortest prefix in `sizes` (descending) holding `used` rows."""
+    """Index of the shortest prefix in `sizes` (descending) holding `used` rows.  Under
+    vmap, the prefix that holds every member's rows (`batching.batch_max`): a longer prefix
+    gives the same values (its extra slots are padding), and the `lax.switch` it drives
+    then runs one branch instead of all of them."""
+    used = batch_max(used)
     return jnp.clip(jnp.sum(jnp.asarray(sizes) >= used) - 1, 0, len(sizes) - 1)
 
 
@@ -205,8 +210,8 @@ def _materialise(pred, *arrays):
     producers for every element of a gather that reads them (here ~10x the cost of the
     gather), and on CPU `optimization_barrier` does not prevent it; the results of a
     conditional are always materialised.  `pred` must be a traced True."""
-    return jax.lax.cond(pred, lambda a: a, lambda a: jax.tree_util.tree_map(jnp.zeros_like, a),
-                        arrays)
+    return jax.lax.cond(batch_any(pred), lambda a: a,
+                        lambda a: jax.tree_util.tree_map(jnp.zeros_like, a), arrays)
 
 
 def _cumsum(a):
@@ -333,7 +338,9 @@ def _build(x, triangles, body, cutoff, capacity, scan_capacity, n_bodies, grid_s
     mark = jnp.zeros((S,), i32).at[jnp.where(nr > 0, off, S)].set(gidx, mode="drop")
     sg = _cummax(mark)                                            # (S,) group
     CS = min(S, SCAN_CHUNK)
-    n_chunks = ((jnp.minimum(n_scan_rows, S) + CS - 1) // CS).astype(i32)
+    # under vmap, the batch's largest trip count (`batching`): the extra trips of a member
+    # visit rows past its own (no slot accepted) or redo its last chunk (same values)
+    n_chunks = batch_max(((jnp.minimum(n_scan_rows, S) + CS - 1) // CS).astype(i32))
     lane = jnp.arange(WS, dtype=i32)
     ulane = lane.astype(jnp.uint32)
     one = jnp.ones((), jnp.uint32)
@@ -481,13 +488,14 @@ def needs_rebuild(nbrs: NeighbourList, x, skin):
 
 
 def update(nbrs: NeighbourList, x, triangles, body, skin) -> NeighbourList:
-    """Rebuild (same cutoff and capacities) under `lax.cond` when `needs_rebuild`.
+    """Rebuild (same cutoff and capacities) under `lax.cond` when `needs_rebuild` (under
+    vmap: only for the members that need it, `batching.cond_each`).
 
     Usable inside `lax.while_loop`.  ``overflow``, ``count``, ``n_scan`` and
     ``max_group_count`` are sticky (or / max over all rebuilds), so one host-side
     `check_overflow` after a solve tells whether any list along the way dropped pairs.
     """
-    def rebuild(old):
+    def rebuild(old, x, triangles, body):
         new = _build(x, triangles, body, old.cutoff, old.capacity, old.scan_capacity,
                      old.n_bodies, old.grid_size)
         return dataclasses.replace(
@@ -498,7 +506,8 @@ def update(nbrs: NeighbourList, x, triangles, body, skin) -> NeighbourList:
             max_group_count=jnp.maximum(new.max_group_count, old.max_group_count),
         )
 
-    return jax.lax.cond(needs_rebuild(nbrs, x, skin), rebuild, lambda old: old, nbrs)
+    return cond_each(needs_rebuild(nbrs, x, skin), rebuild, lambda old, *_: old, nbrs, x,
+                     triangles, body)
 
 
 def check_overflow(nbrs: NeighbourList) -> None:

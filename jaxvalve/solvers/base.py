@@ -13,6 +13,8 @@ from typing import Any, Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 
+from ..batching import batch_any, each_active
+
 
 class RESULTS(enum.IntEnum):
     """Why a solve stopped."""
@@ -118,9 +120,20 @@ def _set_f0(args, F0):
     return dict(args, f0=jnp.where(args["f0"] < 0, jnp.where(f0 > 0, f0, 1.0), args["f0"]))
 
 
-def iterate(solver, system, y0, args):
+#: the entries of ``args`` a loop step may change (`EquilibriumSystem.update`, `_set_f0`)
+_STEP_ARGS = ("nbrs", "f0")
+
+
+def iterate(solver, system, y0, args, *, members_apart: bool = False):
     """Run ``solver`` from y0 in one `lax.while_loop`.  Returns (y, args, state, result, n).
-    ``args`` must be current for y0 (its pair list built or updated there)."""
+    ``args`` must be current for y0 (its pair list built or updated there).
+
+    Under `jax.vmap` (`jaxvalve.batch`) the loop runs until every member has finished, and
+    a finished member's state is kept.  By default the steps of all members are one
+    vectorised program.  members_apart: each step runs member by member, for the members
+    still running (`batching.each_active`): the same compiled step as a single solve, so a
+    member's result is that of a single solve to the last bit, and finished members cost
+    nothing.  Unbatched, both give the single solve."""
     state = solver.init(system, y0, args)
     lazy = getattr(solver, "lazy_force", False)   # F(y0) comes from the first step
     if "f0" in args and not lazy:  # residual scale at P = 0: the initial force
@@ -129,19 +142,55 @@ def iterate(solver, system, y0, args):
     done, result = solver.terminate(system, y0, args, state)
 
     def cond(c):
-        _, _, _, n, done, _ = c
-        return (~done) & (n < solver.max_steps)
+        _, _, _, n, done, _, _ = c
+        live = (~done) & (n < solver.max_steps)
+        # member by member, the loop's predicate is one for the batch: vmap then selects
+        # no carry at each step, and the body skips the members that have stopped
+        return batch_any(live) if members_apart else live
 
-    def body(c):
-        y, args, state, n, _, _ = c
-        args = system.update(y, args)
-        y, state = solver.step(system, y, args, state)
+    def update(y, args, done, y_upd):
+        # A vectorised batch also steps the members that have finished (and vmap discards
+        # the result).  Such a member updates its pair list at the state of its last update
+        # (a no-op: nothing is rebuilt), and the solver sees ``active`` False (FIRE then
+        # refreshes no masses).  In a single solve, done is False here and y_upd is y.
+        y_upd = jnp.where(~done, y, y_upd)
+        return system.update(y_upd, args), y_upd
+
+    def advance(y, args, state, done):
+        y, state = solver.step(system, y, dict(args, active=~done), state)
         if "f0" in args and lazy:
             args = _set_f0(args, state["F"])
         done, result = solver.terminate(system, y, args, state)
-        return y, args, state, n + 1, done, result
+        return y, args, state, done, result
 
-    y, args, state, n, done, result = jax.lax.while_loop(
-        cond, body, (y0, args, state, jnp.asarray(0), done, result))
+    # Member by member (members_apart): the pair lists are brought up to date for the
+    # batch (a rebuild runs for the members that need one, `batching.cond_each`); then the
+    # solver step runs member by member, each member's state copied in and out, its pair
+    # list read in place; the other args are loop constants, not carried.
+    fixed = {k: v for k, v in args.items() if k not in _STEP_ARGS} if members_apart else {}
+
+    def body(c):
+        y, args, state, n, done, result, y_upd = c
+        if members_apart:
+            live = (~done) & (n < solver.max_steps)
+            args, y_upd = update(y, {**fixed, **args}, ~live, y_upd)
+
+            def own(y, f0, state, done, result, nbrs):
+                a = dict(fixed, nbrs=nbrs, f0=f0)
+                y, a, state, done, result = advance(y, a, state, done)
+                return y, a["f0"], state, done, result
+
+            y, f0, state, done, result = each_active(
+                live, own, y, args["f0"], state, done, result, shared=(args["nbrs"],))
+            args = {k: v for k, v in dict(args, f0=f0).items() if k not in fixed}
+            return y, args, state, n + live, done, result, y_upd
+        args, y_upd = update(y, args, done, y_upd)
+        y, args, state, done, result = advance(y, args, state, done)
+        return y, args, state, n + 1, done, result, y_upd
+
+    carried = {k: v for k, v in args.items() if k not in fixed}
+    y, args, state, n, done, result, _ = jax.lax.while_loop(
+        cond, body, (y0, carried, state, jnp.asarray(0), done, result, y0))
+    args = {**fixed, **args}
     result = jnp.where(done, result, RESULTS.max_steps_reached)
     return y, args, state, result, n

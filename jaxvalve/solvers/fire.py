@@ -6,6 +6,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
+from ..batching import cond_each
 from .base import RESULTS, check_state, relative_residual
 
 
@@ -46,11 +47,13 @@ class FIRE:
 
     def step(self, system, y, args, s):
         F, v = s["F"], s["v"]
-        # masses: set at the first step, raised every `refresh` steps (stiffening)
+        # masses: set at the first step, raised every `refresh` steps (stiffening).  Under
+        # vmap only the members due compute them (`batching.cond_each`); a member that has
+        # finished (``args["active"]`` False, `iterate`) is never due
         floor = jnp.where(s["n"] == 0, 0.0, s["m"])
-        m = jax.lax.cond(s["n"] % self.refresh == 0,
-                         lambda: jnp.maximum(floor, self._mass(system, y, args)),
-                         lambda: s["m"])
+        due = (s["n"] % self.refresh == 0) & args.get("active", True)
+        m = cond_each(due, lambda m, f, y, a: jnp.maximum(f, self._mass(system, y, a)),
+                      lambda m, f, y, a: m, s["m"], floor, y, args)
         sq = jnp.sqrt(m)
         f = F / sq  # force in mass-scaled coordinates; v is the scaled velocity
         power = jnp.sum(f * v)

@@ -6,6 +6,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
+from ..batching import cond_each
 from .base import RESULTS, check_state, relative_residual
 
 
@@ -48,10 +49,10 @@ class FixedPoint:
         Fn = jnp.linalg.norm(F)
         if self.delta is None and self.refresh > 0:
             # refresh on schedule, and at once when the force grows (onset of instability)
-            due = ((s["n"] + 1) % self.refresh == 0) | (Fn > 2.0 * s["Fn"])
-            delta = jax.lax.cond(due,
-                                 lambda: jnp.minimum(delta, self._delta_bound(system, y, args)),
-                                 lambda: delta)
+            due = (((s["n"] + 1) % self.refresh == 0) | (Fn > 2.0 * s["Fn"])) \
+                & args.get("active", True)
+            delta = cond_each(due, lambda d, y, a: jnp.minimum(d, self._delta_bound(system, y, a)),
+                              lambda d, y, a: d, delta, y, args)
         return y, dict(F=F, Fn=Fn, delta=delta, dx0=s["dx0"], dx=delta * Fn, n=s["n"] + 1,
                        evals=s["evals"] + 1)
 

@@ -1,0 +1,126 @@
+"""Batch evaluation over materials against sequential closures (same valve, same members).
+
+    python benchmarks/batch.py                  # h = 1.5 mm, StVK, E = 1 1.25 1.5 2 MPa
+    python benchmarks/batch.py --benchmark      # the benchmark mesh, h = 0.88 mm
+    python benchmarks/batch.py --h 2 --E 0.5 0.8 1 1.25 2 --model neo-hookean
+
+One valve is built; the members are closed by `simulate_batch(scene, materials,
+valve=valve)` (one jitted vmap over the members, both loads), with the solver steps run
+member by member (``vectorize=False``, the CPU default) and vectorised (``vectorize=True``,
+the GPU default), and, for comparison, by one `simulate(scene, valve=valve)` per member
+(one compiled solve shared by all calls).  Each path runs twice:
+the first run compiles (JAX's compile time is reported separately), the second is timed
+after compilation.  "solve s" is the wall time of the closures of all members (both loads),
+"wall s" adds the host-side metrics; "s / scene" is solve s / members.  The last line
+checks that both paths give the same metrics (max difference over members).
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+os.environ.setdefault("JAXVALVE_CACHE_DIR", "off")
+
+import numpy as np  # noqa: E402
+
+import jaxvalve  # noqa: E402,F401  (float64)
+from jaxvalve import materials as M  # noqa: E402
+from jaxvalve import valve as V  # noqa: E402
+from jaxvalve.batch import METRICS, simulate_batch  # noqa: E402
+from jaxvalve.leaflet_mesh import mesh_leaflet  # noqa: E402
+from jaxvalve.scene import BENCHMARK_H, MODELS, Scene  # noqa: E402
+from jaxvalve.simulation import simulate  # noqa: E402
+
+
+def material(model, E, nu):
+    if model == "stvk":
+        return M.StVenantKirchhoff(E=E, nu=nu)
+    if model == "neo-hookean":
+        return M.NeoHookean(mu=E / 3)
+    if model == "gent":
+        return M.Gent(mu=E / 3, Jm=2.3)
+    return M.MassSpring.linear(E)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--h", type=float, default=1.5, help="mesh size, mm (default 1.5)")
+    ap.add_argument("--benchmark", action="store_true",
+                    help=f"the benchmark mesh, h = {BENCHMARK_H} mm")
+    ap.add_argument("--model", choices=MODELS, default="stvk")
+    ap.add_argument("--E", type=float, nargs="+", default=[1.0, 1.25, 1.5, 2.0],
+                    help="Young's moduli of the members, MPa (neo-Hookean, Gent: mu = E/3)")
+    ap.add_argument("--nu", type=float, default=0.45, help="StVK Poisson ratio")
+    ap.add_argument("--only-default", action="store_true",
+                    help="skip the vectorised batch (one compile less)")
+    args = ap.parse_args(argv)
+    h = BENCHMARK_H if args.benchmark else args.h
+    scene = Scene(h=h, model=args.model)
+    valve = V.build_valve(scene.load_root(), mesh_leaflet(scene.template(), h))
+    mats = [material(args.model, e, args.nu) for e in args.E]
+    B = len(mats)
+    print(f"# {args.model}, h = {h} mm ({len(valve.leaflet.triangles)} triangles a leaflet), "
+          f"{B} members E = {args.E} MPa, loads {scene.he_pressure:g} then "
+          f"{scene.pressure:g} mmHg, rtol {scene.rtol:g}; {os.cpu_count()} CPU cores")
+
+    rows, results = {}, {}
+    for name, vec in (("batch, member loop (CPU default)", False),
+                      ("batch, vectorised (GPU default)", True)):
+        if args.only_default and vec:
+            continue
+        # the first call compiles, the second is timed
+        t0 = time.perf_counter()
+        r0 = simulate_batch(scene, mats, valve=valve, throw=False, vectorize=vec)
+        first = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        rb = simulate_batch(scene, mats, valve=valve, throw=False, vectorize=vec)
+        wall = time.perf_counter() - t0
+        rows[name] = dict(compile=r0.timings["compile"], first=first, solve=rb.timings["solve"],
+                          wall=wall, steps=sum(s.steps for m in rb for s in m.solves),
+                          conv=sum(m.converged for m in rb))
+        results[name] = rb
+    # sequential: the first member's first call compiles; then all members are timed
+    t0 = time.perf_counter()
+    s0 = [simulate(scene, valve=valve, throw=False).solves]
+    comp = sum(s.compile_s for s in s0[0])
+    first = time.perf_counter() - t0
+    seq, t0 = [], time.perf_counter()
+    for mat in mats:
+        seq.append(_simulate_material(scene, valve, mat))
+    wall = time.perf_counter() - t0
+    rows["sequential simulate()"] = dict(
+        compile=comp, first=first, solve=sum(s.solve_s for r in seq for s in r.solves),
+        wall=wall, steps=sum(s.steps for r in seq for s in r.solves),
+        conv=sum(r.converged for r in seq))
+
+    print("\n| path | members | compile s | solve s (after compile) | s / scene | wall s | "
+          "FIRE steps (all members) | converged | per scene vs sequential |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    ref = rows["sequential simulate()"]["solve"] / B
+    for name, r in rows.items():
+        print(f"| {name} | {B} | {r['compile']:.1f} | {r['solve']:.2f} | {r['solve'] / B:.3f} | "
+              f"{r['wall']:.2f} | {r['steps']} | {r['conv']}/{B} | "
+              f"{(r['solve'] / B) / ref:.2f} |")
+    for name, rb in results.items():
+        diff = max(abs(m.summary()[k] - q.summary()[k]) for m, q in zip(rb, seq) for k in METRICS)
+        dx = max(float(np.max(np.abs(m.x - q.x))) for m, q in zip(rb, seq))
+        print(f"\n{name} vs sequential: max |dx| = {dx:.2e} mm, max metric difference "
+              f"{diff:.1e} mm (%); steps per member (3 / 80 mmHg): "
+              + " ".join(f"{m.solves[0].steps}/{m.solves[1].steps}" for m in rb))
+    print("sequential steps per member: "
+          + " ".join(f"{r.solves[0].steps}/{r.solves[1].steps}" for r in seq))
+
+
+def _simulate_material(scene, valve, mat):
+    """`simulate` of the scene with the material ``mat`` (its model's Scene fields)."""
+    p = {k: float(getattr(mat, k)) for k in ("E", "nu", "mu", "Jm", "E1", "E2", "E3")
+         if hasattr(mat, k)}
+    return simulate(scene.replace(**p), valve=valve, throw=False)
+
+
+if __name__ == "__main__":
+    main()
