@@ -21,7 +21,6 @@ seconds); it raises `ConvergenceError` when GMRES misses its tolerance.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import time
 
 import jax
@@ -104,7 +103,7 @@ def _contact_blocks(x, problem, params, ref, pairs: SoftPairs):
     return wt[:, None, None] * gv[:, :, None] * gv[:, None, :], idx.T
 
 
-@functools.partial(jax.jit, static_argnums=())
+@jax.jit
 def _blocks(x, problem, params, nbrs, hinge_nodes, hinge_tris):
     ref = assembly.prepare(problem, params)
     out = [(assembly._element_hessians(x, problem, params, ref)

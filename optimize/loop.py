@@ -52,7 +52,8 @@ def make_optimizer(name: str = "lbfgs", learning_rate: float = 0.5, decay: float
 class LoopState:
     """iteration; evaluation (`optimize.evaluate.Evaluation`) at the current point; value,
     grad (3,); opt_state (optax); counts {'forward', 'gradient'}; seconds (cumulative);
-    done, reason; record (dict: the last iteration's report)."""
+    done, reason; failed: stopped on an error (a non-finite objective or gradient), not by
+    a stopping rule; record (dict: the last iteration's report)."""
 
     iteration: int
     evaluation: Any
@@ -63,6 +64,7 @@ class LoopState:
     seconds: float
     done: bool = False
     reason: str = ""
+    failed: bool = False
     record: dict = dataclasses.field(default_factory=dict)
 
     @property
@@ -137,7 +139,8 @@ def update(evaluator, optimizer, state: LoopState, *, adjoint: str = "lu",
     upd, opt_state = optimizer.update(g, state.opt_state, rab)
     d = np.asarray(upd, float)
     if not np.all(np.isfinite(d)):
-        return dataclasses.replace(state, done=True, reason="the optimiser's step is not finite")
+        return dataclasses.replace(state, done=True, failed=True,
+                                   reason="the optimiser's step is not finite")
     if np.max(np.abs(d)) > max_step:
         d = d * (max_step / np.max(np.abs(d)))
     if line_search and float(np.dot(d, g)) >= 0:   # not a descent direction: restart
@@ -167,10 +170,7 @@ def update(evaluator, optimizer, state: LoopState, *, adjoint: str = "lu",
     try:
         v, g_new, adj = _gradient(evaluator, accepted, counts, adjoint)
     except ConvergenceError as e:
-        return dataclasses.replace(state, counts=counts, done=True, reason=str(e))
-    if not np.isfinite(v):
-        return dataclasses.replace(state, counts=counts, done=True,
-                                   reason=f"the objective is not finite: {v}")
+        return dataclasses.replace(state, counts=counts, done=True, reason=str(e), failed=True)
     secs = state.seconds + time.perf_counter() - t0
     it = state.iteration + 1
     pg = projected_gradient(accepted.rab, g_new, lo, hi)
@@ -186,4 +186,5 @@ def update(evaluator, optimizer, state: LoopState, *, adjoint: str = "lu",
                   dict(step=float(np.max(np.abs(accepted.rab - rab))), trials=trials,
                        adjoint_residual=adj,
                        line_search=" ".join(f"{a:g}:{n}:{v:.4g}" for a, n, v in log)))
-    return LoopState(it, accepted, v, g_new, opt_state, counts, secs, done, reason, rec)
+    return LoopState(it, accepted, v, g_new, opt_state, counts, secs, done, reason,
+                     record=rec)

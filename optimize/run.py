@@ -131,7 +131,6 @@ def optimize_template(scene: Scene | None = None, objective: Objective | None = 
             if out is not None:
                 write_trajectory(out, config, records, dict(done=False))
                 write_checkpoint(out, state, evaluator)
-        failed = False
         while not state.done and state.iteration < max_iter:
             try:
                 state = loop.update(evaluator, opt, state, **kw)
@@ -140,15 +139,14 @@ def optimize_template(scene: Scene | None = None, objective: Objective | None = 
                     write_trajectory(out, config, records,
                                      dict(done=True, failed=True, reason=str(e)))
                 raise
-            if state.record is not records[-1] and state.record.get("iteration") == state.iteration \
-                    and state.iteration > records[-1]["iteration"]:
+            if state.iteration > records[-1]["iteration"]:       # a step was accepted
                 records.append(state.record)
                 say(_line(state.record))
             if out is not None:
                 write_trajectory(out, config, records, dict(done=state.done, reason=state.reason))
                 write_checkpoint(out, state, evaluator)
         reason = state.reason or f"reached max_iter = {max_iter}"
-        failed = "not finite" in reason
+        failed = state.failed
     seconds = time.perf_counter() - t_start
     say(f"stopped: {reason}")
     files = ()
