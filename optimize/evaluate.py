@@ -116,6 +116,9 @@ class Evaluator:
             lambda rab, xs, st, pl, ar: self._terms(rab, xs, st, pl, ar, False),
             argnums=(0, 1), has_aux=True))
         self._pull_jit = jax.jit(self._pullback, static_argnums=(1,))
+        self._pull_params_jit = jax.jit(self._pullback_params, static_argnums=(1,))
+        self._metric_jac_jit = jax.jit(jax.jacrev(self._load_metrics, argnums=(0, 2)),
+                                       static_argnums=(1,))
         self._dcc_jit = jax.jit(self.d_cc)
         self.say(f"mesh generation {self.generation}: {len(lm.triangles)} triangles a "
                  f"leaflet at (r, a, b) = {tuple(np.round(rab, 4))}")
@@ -158,12 +161,20 @@ class Evaluator:
         bad = [f"{k} slack {float(v):.3f} mm" for k, v in s.items() if float(v) <= 0]
         return "infeasible template: " + ", ".join(bad) if bad else ""
 
-    def forward(self, rab, warm: Evaluation | None = None) -> Evaluation:
-        """Close the valve(s) for (r, a, b) mm and evaluate the objective."""
+    def forward(self, rab, warm: Evaluation | None = None, *, material=None) -> Evaluation:
+        """Close the valve(s) for (r, a, b) mm and evaluate the objective.  material: a
+        material of the scene's law with other moduli (e.g. a stiffness sample); its
+        values are traced, so nothing recompiles.  `gradient` and `sensitivities` are
+        taken at the scene's own material."""
         rab = np.asarray(rab, float)
         why = self.feasible(rab)
         if why:
             raise ParameterError(why)
+        if material is not None:
+            if type(material) is not type(self.material):
+                raise ParameterError(f"material must be a {type(self.material).__name__} "
+                                     f"(the scene's law); got {type(material).__name__}")
+            material.validate()
         th = self.theta(rab)
         if self.design.tmap.needs_remesh(*np.asarray(th), min_angle=self.min_angle):
             self._build(rab)
@@ -171,16 +182,18 @@ class Evaluator:
         if isinstance(warm, Evaluation) and warm.generation != self.generation:
             warm = None
         states, plans, solves, metrics = {}, {}, [], {}
-        prev = None
         for load in self.loads:
             if isinstance(warm, dict):                 # {load: x (N, 3)}, e.g. a checkpoint
                 seed = warm[load]
             elif warm is not None:
                 seed = warm.states[load][1].x
             else:
-                seed = self.valve.x_start if prev is None else prev
+                seed = self.valve.x_start   # not the other load's state: closing at
+                #                             80 mmHg from the 3 mmHg state chatters
             x0 = self.design.x_fixed(th, x_free=jnp.asarray(seed))
             params = self.base[load].replace(ref=self.design.ref(th))
+            if material is not None:
+                params = params.replace(material=material)
             t0 = time.perf_counter()
             sol = equilibrium.solve(self.valve.problem, params, x0, self.solver, throw=False)
             x = np.asarray(sol.x)
@@ -201,7 +214,6 @@ class Evaluator:
             for name, (ld, key, fac, _, _) in METRICS.items():
                 if ld == load:
                     metrics[name] = fac * m[key]
-            prev = x
         d_cc = float(self._dcc_jit(th))
         terms = {k: float(v) for k, v in self.objective.terms(
             th, self.scene.alpha, metrics, d_cc, self.area_ref).items()}
@@ -210,6 +222,60 @@ class Evaluator:
         reason = "" if np.isfinite(value) else f"the objective is not finite: {terms}"
         return Evaluation(rab, self.generation, states, plans, metrics, terms, value, d_cc,
                           tuple(solves), bool(np.isfinite(value)), reason)
+
+    def result(self, ev: Evaluation, *, throw: bool = True):
+        """The exact (non-smooth) coaptation of a converged evaluation, as the
+        `jaxvalve.simulation.SimulationResult` that `simulate` returns for this design:
+        the leaflet mesh mapped to ev's template, the closed states of ``ev``, and a
+        closure warm-started from the other load for a load the objective did not need.
+        Plots (``plot_profiles``, ``plot_valve``) and ``summary()`` work on it."""
+        from jaxvalve.simulation import SimulationResult, SolveReport, _measure, compile_timer
+
+        if not ev.converged:
+            raise ConvergenceError(f"no result at (r, a, b) = {tuple(ev.rab)}: {ev.reason}")
+        if ev.generation != self.generation:
+            raise ParameterError("this evaluation belongs to an earlier mesh generation")
+        th = self.theta(ev.rab)
+        tpl = Template(*np.asarray(ev.rab, float), self.scene.alpha)
+        lm = dataclasses.replace(self.valve.leaflet, template=tpl,
+                                 points=np.asarray(self.design.tmap.points(*np.asarray(th))))
+        x_fix = np.asarray(self.design.x_fixed(th))
+        valve = dataclasses.replace(self.valve, leaflet=lm, ref=np.asarray(self.design.ref(th)),
+                                    x_placed=x_fix, x_start=x_fix)
+        xs, reports = {}, {}
+        for s in ev.solves:
+            xs[s["load"]] = np.asarray(ev.states[s["load"]][1].x)
+            reports[s["load"]] = SolveReport(s["pressure"], s["result"], s["converged"],
+                                             s["steps"], s["residual"], s["seconds"], 0.0)
+        for load in LOAD_ORDER:
+            if load in xs:
+                continue
+            seed = next(iter(xs.values()))
+            params = self.valve.params(self.material, self.pressure[load], self.contact,
+                                       self.scene.thickness, np.deg2rad(self.scene.fibre_angle),
+                                       self.bending).replace(ref=self.design.ref(th))
+            with compile_timer() as ct:
+                t0 = time.perf_counter()
+                sol = equilibrium.solve(self.valve.problem, params,
+                                        self.design.x_fixed(th, x_free=jnp.asarray(seed)),
+                                        self.solver, throw=False)
+                x = np.asarray(sol.x)
+                wall = time.perf_counter() - t0
+            ok = sol.converged and bool(np.all(np.isfinite(x)))
+            if throw and not ok:
+                raise ConvergenceError(f"closure at {self.pressure[load]:g} mmHg did not "
+                                       f"converge: {sol.describe()}", sol)
+            xs[load] = x
+            reports[load] = SolveReport(float(self.pressure[load]), RESULTS(int(sol.result)).name,
+                                        ok, int(sol.stats.steps), float(sol.stats.residual),
+                                        wall, min(ct.seconds, wall))
+        t0 = time.perf_counter()
+        m_he, m = (_measure(valve, xs[l], self.scene.g_c) for l in LOAD_ORDER)
+        t_m = time.perf_counter() - t0
+        return SimulationResult(
+            scene=self.scene.replace(r=tpl.r, a=tpl.a, b=tpl.b), valve=valve, x=xs["closed"],
+            x_he=xs["he"], metrics=m, metrics_he=m_he, solves=(reports["he"], reports["closed"]),
+            timings=dict(setup=0.0, metrics=t_m))
 
     @property
     def area_ref(self):
@@ -252,6 +318,62 @@ class Evaluator:
             R = assembly.residual(xx, self.valve.problem, params, ref, nbrs)
             return jnp.sum(mu * R)
         return jax.grad(f)(rab)
+
+    def _pullback_params(self, rab, load, x, nbrs, mu):
+        """d/d(params) of <mu, R(x, params)> at the template's sutured nodes (a `Params`
+        pytree: material moduli, thickness, pressure, ...)."""
+        from jaxvalve import assembly
+
+        th = jnp.concatenate([rab, jnp.asarray([self.scene.alpha], rab.dtype)])
+        xx = self.design.x_fixed(th, x_free=x)
+
+        def f(params):
+            ref = assembly.prepare(self.valve.problem, params)
+            return jnp.sum(mu * assembly.residual(xx, self.valve.problem, params, ref, nbrs))
+        return jax.grad(f)(self.base[load].replace(ref=self.design.ref(th)))
+
+    def _load_metrics(self, rab, load, x, plan):
+        """The smooth metrics of one load, (k,) in METRICS order, with the sutured nodes at
+        the template's positions (their direct dependence on (r, a, b))."""
+        th = jnp.concatenate([rab, jnp.asarray([self.scene.alpha], rab.dtype)])
+        m = smooth_metrics(self.design.x_fixed(th, x_free=x), plan, self.eps)
+        return jnp.stack([fac * m[key] for name, (ld, key, fac, _, _) in METRICS.items()
+                          if ld == load])
+
+    def sensitivities(self, ev: Evaluation) -> dict:
+        """Derivatives of the smooth metrics at a converged evaluation: {metric: {param:
+        d metric / d param}} for every metric of the closed loads, with param r, a, b (mm)
+        and the material's moduli (e.g. E, nu for StVK; MPa^-1 for a modulus).  One LU
+        adjoint solve per metric (`jaxvalve.tangent.adjoint_solve`); raises
+        `ConvergenceError` when ``ev`` did not converge or an adjoint solve failed."""
+        from jaxvalve.tangent import adjoint_solve
+
+        if not ev.converged:
+            raise ConvergenceError(f"no sensitivities at (r, a, b) = {tuple(ev.rab)}: "
+                                   f"{ev.reason}")
+        if ev.generation != self.generation:
+            raise ParameterError("this evaluation belongs to an earlier mesh generation")
+        rab = jnp.asarray(ev.rab)
+        th = self.theta(ev.rab)
+        out = {}
+        for load in self.loads:
+            names = [n for n, (ld, *_rest) in METRICS.items() if ld == load]
+            x0, sol = ev.states[load]
+            J_rab, J_x = self._metric_jac_jit(rab, load, sol.x, ev.plans[load])
+            params = self.base[load].replace(ref=self.design.ref(th))
+            for k, name in enumerate(names):
+                mu, _ = adjoint_solve(self.valve.problem, params, sol.x, sol.nbrs, J_x[k])
+                mu = jnp.asarray(mu)
+                g = np.asarray(J_rab[k]) + np.asarray(
+                    self._pull_jit(rab, load, sol.x, sol.nbrs, mu))
+                gp = self._pull_params_jit(rab, load, sol.x, sol.nbrs, mu)
+                d = dict(r=float(g[0]), a=float(g[1]), b=float(g[2]))
+                for f in dataclasses.fields(gp.material):
+                    v = getattr(gp.material, f.name)
+                    if v is not None and np.ndim(v) == 0:
+                        d[f.name] = float(v)
+                out[name] = d
+        return out
 
     def gradient(self, ev: Evaluation, adjoint: str = "lu"):
         """(value, grad (3,), info) of the objective at a converged evaluation.

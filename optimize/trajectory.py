@@ -12,7 +12,7 @@ import numpy as np
 
 from jaxvalve.errors import ParameterError
 
-__all__ = ["write_trajectory", "write_checkpoint", "read_checkpoint", "plot_run"]
+__all__ = ["write_trajectory", "write_checkpoint", "read_checkpoint", "plot_run", "figure"]
 
 
 def write_trajectory(out: Path, config: dict, records: list, status: dict):
@@ -60,12 +60,24 @@ def template_outline(r, a, b, alpha, n=120):
 
 
 def plot_run(out: Path, records: list, alpha: float, targets=()):
-    """optimisation.png: objective, metrics with their targets, and the template outline
-    at the start and at the end."""
+    """optimisation.png (`figure`) in ``out``; returns its path."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    fig = figure(records, alpha, targets, plt)
+    path = out / "optimisation.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def figure(records: list, alpha: float, targets=(), plt=None):
+    """The run's figure: objective and metrics (with their targets, dotted) against the
+    iteration, and the template outline at the start and at the end (mm)."""
+    if plt is None:
+        from jaxvalve.plots import _pyplot
+        plt = _pyplot()
     it = [r["iteration"] for r in records]
     fig, ax = plt.subplots(1, 3, figsize=(15, 4.2))
     ax[0].semilogy(it, [max(r["objective"], 1e-12) for r in records], "o-")
@@ -91,7 +103,4 @@ def plot_run(out: Path, records: list, alpha: float, targets=()):
     ax[2].legend(fontsize=8)
     ax[2].set_title("template")
     fig.tight_layout()
-    path = out / "optimisation.png"
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return fig
