@@ -3,6 +3,7 @@
     python benchmarks/batch.py                  # h = 1.5 mm, StVK, E = 1 1.25 1.5 2 MPa
     python benchmarks/batch.py --benchmark      # the benchmark mesh, h = 0.88 mm
     python benchmarks/batch.py --h 2 --E 0.5 0.8 1 1.25 2 --model neo-hookean
+    python benchmarks/batch.py --sizes 1 16 64 256  # throughput against the batch size
 
 One valve is built; the members are closed by `simulate_batch(scene, materials,
 valve=valve)` (one jitted vmap over the members, both loads), with the solver steps run
@@ -25,6 +26,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 os.environ.setdefault("JAXVALVE_CACHE_DIR", "off")
 
+import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
 import jaxvalve  # noqa: E402,F401  (float64)
@@ -56,11 +58,16 @@ def main(argv=None):
                     help="Young's moduli of the members, MPa (neo-Hookean, Gent: mu = E/3)")
     ap.add_argument("--nu", type=float, default=0.45, help="StVK Poisson ratio")
     ap.add_argument("--only-default", action="store_true",
-                    help="skip the vectorised batch (one compile less)")
+                    help="run only this backend's default batch path (one compile less)")
+    ap.add_argument("--sizes", type=int, nargs="+", default=None,
+                    help="instead: throughput of the default batch path at these batch sizes "
+                         "(members with E spread geometrically over --E's range)")
     args = ap.parse_args(argv)
     h = BENCHMARK_H if args.benchmark else args.h
     scene = Scene(h=h, model=args.model)
     valve = V.build_valve(scene.load_root(), mesh_leaflet(scene.template(), h))
+    if args.sizes:
+        return scaling(scene, valve, args)
     mats = [material(args.model, e, args.nu) for e in args.E]
     B = len(mats)
     print(f"# {args.model}, h = {h} mm ({len(valve.leaflet.triangles)} triangles a leaflet), "
@@ -70,7 +77,7 @@ def main(argv=None):
     rows, results = {}, {}
     for name, vec in (("batch, member loop (CPU default)", False),
                       ("batch, vectorised (GPU default)", True)):
-        if args.only_default and vec:
+        if args.only_default and vec != (jax.default_backend() != "cpu"):
             continue
         # the first call compiles, the second is timed
         t0 = time.perf_counter()
@@ -113,6 +120,38 @@ def main(argv=None):
               + " ".join(f"{m.solves[0].steps}/{m.solves[1].steps}" for m in rb))
     print("sequential steps per member: "
           + " ".join(f"{r.solves[0].steps}/{r.solves[1].steps}" for r in seq))
+
+
+def scaling(scene, valve, args):
+    """Throughput of `simulate_batch` (its default path on this backend) against the batch
+    size B, with sequential `simulate()` calls of the same members as the reference (at most
+    4 of them, timed after compilation).  Each size compiles once (B is a shape)."""
+    lo, hi = min(args.E), max(args.E)
+    print(f"# {args.model}, h = {scene.h} mm ({len(valve.leaflet.triangles)} triangles a "
+          f"leaflet), E spread geometrically over [{lo}, {hi}] MPa, loads "
+          f"{scene.he_pressure:g} then {scene.pressure:g} mmHg, rtol {scene.rtol:g}; backend "
+          f"{jax.default_backend()}, {os.cpu_count()} CPU cores")
+    ref_E = np.geomspace(lo, hi, 4) if hi > lo else [lo]
+    simulate(scene, valve=valve, throw=False)                      # compiles
+    seq = [_simulate_material(scene, valve, material(args.model, e, args.nu)) for e in ref_E]
+    seq_s = sum(s.solve_s for r in seq for s in r.solves) / len(seq)
+    seq_steps = sum(s.steps for r in seq for s in r.solves) / len(seq)
+    print(f"sequential simulate(): {seq_s:.3f} s a scene ({seq_steps:.0f} FIRE steps, "
+          f"{1e3 * seq_s / seq_steps:.3f} ms a step), {len(seq)} members timed\n")
+    print("| B | compile s | solve s | s / scene | scenes / s | vs sequential | loop steps "
+          "(slowest member, both loads) | ms / loop step | converged |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for B in args.sizes:
+        mats = [material(args.model, e, args.nu)
+                for e in (np.geomspace(lo, hi, B) if B > 1 else [lo])]
+        r0 = simulate_batch(scene, mats, valve=valve, throw=False)
+        rb = simulate_batch(scene, mats, valve=valve, throw=False)
+        solve = rb.timings["solve"]
+        loop_steps = sum(max(m.solves[k].steps for m in rb) for k in (0, 1))
+        print(f"| {B} | {r0.timings['compile']:.1f} | {solve:.2f} | {solve / B:.4f} | "
+              f"{B / solve:.1f} | {(solve / B) / seq_s:.3f} | {loop_steps} | "
+              f"{1e3 * solve / loop_steps:.3f} | {sum(m.converged for m in rb)}/{B} |",
+              flush=True)
 
 
 def _simulate_material(scene, valve, mat):

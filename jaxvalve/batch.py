@@ -17,11 +17,15 @@ the members that need them (`jaxvalve.batching`).  Two ways to run the steps:
   loop (`iterate(members_apart=True)`), with the same compiled code as a single solve.  A
   member's result is then `simulate`'s to the last bit, whatever the batch (tested), and
   finished members cost nothing.
-* ``vectorize=True`` (default on GPU): the steps of all members are one array program.
-  XLA orders a few sums differently for batched arrays, so members differ from sequential
-  runs by rounding (1e-16), which FIRE's path can amplify to ~1e-3 mm at rtol 1e-4 (the
-  size of the path dependence of the closed state; README, "Accuracy").  On this 2-core
-  CPU it is also slower than the member loop (`benchmarks/batch.py`).
+* ``vectorize=True`` (default on GPU): the steps of all members are one array program,
+  and so are the rebuilds (`batching.branches("select")`: run for the whole batch when any
+  member is due, each member keeping its own branch), so a step's cost hardly grows with
+  the batch on a GPU.  XLA orders a few sums differently for batched arrays, so members
+  differ from sequential runs by rounding (1e-16), which FIRE's path can amplify to ~1e-3
+  mm at rtol 1e-4 (the size of the path dependence of the closed state; README,
+  "Accuracy").  On this 2-core CPU it is slower than the member loop (`benchmarks/batch.py`).
+
+A batch of one member runs the unbatched program of a single solve (no vmap) either way.
 
 Contact pair lists have static capacities.  Members whose list overflowed (result
 ``neighbour_overflow``) are solved again, alone, at a larger capacity, as
@@ -40,6 +44,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import contact as _contact
+from .batching import branches
 from .contact.neighbours import DEFAULT_SCAN_RATIO, MAX_GROUP
 from .contact.soft_pairs import SoftPairs, stale_soft_pairs
 from .equilibrium import DEFAULT_SKIN, _make_args, contact_cutoff, stale_pairs, update_pairs
@@ -310,8 +315,14 @@ def _member(material, *, solver, problem, base, x0, nbrs, pressures, skin, lazy,
 @functools.partial(jax.jit, static_argnames=("solver", "skin", "lazy", "loop"))
 def _close_batch(materials, problem, base, x0, nbrs, pressures, *, solver, skin, lazy, loop):
     f = functools.partial(_member, solver=solver, problem=problem, base=base, x0=x0,
-                          nbrs=nbrs, pressures=pressures, skin=skin, lazy=lazy, loop=loop)
-    return jax.vmap(f)(materials)
+                          nbrs=nbrs, pressures=pressures, skin=skin, lazy=lazy, loop=False)
+    if jax.tree_util.tree_leaves(materials)[0].shape[0] == 1:
+        # one member: the unbatched program of a single solve (no vmap, no selects)
+        one = f(jax.tree_util.tree_map(lambda a: a[0], materials))
+        return jax.tree_util.tree_map(lambda a: a[None], one)
+    # vectorised: the rebuild branches too run as one array program (`batching.branches`)
+    with branches("members" if loop else "select"):
+        return jax.vmap(functools.partial(f, loop=loop))(materials)
 
 
 def _stale(contact, problem, x0, skin, capacity=None, soft_capacity=None):

@@ -14,10 +14,14 @@ to the last bit).  Under vmap (`custom_vmap` rules) they keep each member's work
 in a sequential run:
 
 * `cond_each(pred, true_fn, false_fn, *operands)`: ``lax.cond`` member by member.  The
-  false branch (which should be cheap: an identity or a field update) runs vectorised;
-  the true branch runs, unbatched, only for the members whose pred is True (a loop over
-  the batch, skipped when no member needs it).  Used for the pair-list rebuilds and
-  FIRE's mass refresh.
+  false branch (which should be cheap: an identity or a field update) runs vectorised.
+  The true branch runs in one of two ways, chosen at trace time by `branches(policy)`:
+  ``"members"`` (default) runs it, unbatched, only for the members whose pred is True (a
+  loop over the batch, skipped when no member needs it: the least arithmetic, for a CPU);
+  ``"select"`` runs it vectorised for the whole batch when any member needs it, and each
+  member keeps its own branch's value (one array program whatever the batch size, for a
+  GPU, where the member loop made a step's cost grow linearly with the batch).  Used for
+  the pair-list rebuilds and FIRE's mass refresh.
 * `each_active(pred, fn, *carry)`: a loop step ``fn`` run member by member, for the
   members whose pred is True, updating the batched carry in place
   (`solvers.base.iterate(members_apart=True)`).  Each member's operands are sliced out
@@ -36,10 +40,29 @@ become explicit operands, so a batching rule that runs later meets no stale trac
 """
 from __future__ import annotations
 
+import contextlib
+
 import jax
 import jax.numpy as jnp
 
-__all__ = ["batch_any", "batch_max", "cond_each", "each_active"]
+__all__ = ["batch_any", "batch_max", "branches", "cond_each", "each_active"]
+
+_POLICIES = ("members", "select")
+_policy = ["members"]
+
+
+@contextlib.contextmanager
+def branches(policy: str):
+    """Within this block, `cond_each` traced under vmap runs its true branch by ``policy``:
+    "members" or "select" (module docstring).  Read at trace time: a jitted caller must
+    take the policy as a static argument, so that each policy gets its own trace."""
+    if policy not in _POLICIES:
+        raise ValueError(f"branches: policy must be one of {_POLICIES}; got {policy!r}")
+    old, _policy[0] = _policy[0], policy
+    try:
+        yield
+    finally:
+        _policy[0] = old
 
 
 @jax.custom_batching.custom_vmap
@@ -115,6 +138,16 @@ def cond_each(pred, true_fn, false_fn, *operands):
         p_batched, o_batched = in_batched[0], in_batched[1:]
         if not p_batched:       # one decision for all: an ordinary cond over the batch
             out = jax.lax.cond(pred, lambda *o: _vmap(t_fn, o_batched, o, axis_size),
+                               lambda *o: _vmap(f_fn, o_batched, o, axis_size), *ops)
+            return out, jax.tree_util.tree_map(lambda _: True, out)
+        if _policy[0] == "select":
+            def both(*o):
+                t = _vmap(t_fn, o_batched, o, axis_size)
+                f = _vmap(f_fn, o_batched, o, axis_size)
+                return jax.tree_util.tree_map(
+                    lambda a, b: jnp.where(pred.reshape((-1,) + (1,) * (a.ndim - 1)), a, b),
+                    t, f)
+            out = jax.lax.cond(jnp.any(pred), both,
                                lambda *o: _vmap(f_fn, o_batched, o, axis_size), *ops)
             return out, jax.tree_util.tree_map(lambda _: True, out)
         acc = _vmap(f_fn, o_batched, ops, axis_size)

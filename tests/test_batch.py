@@ -263,3 +263,24 @@ def test_sweep_writes_csv_and_heat_map_and_exits_3_when_a_member_fails(runs, tmp
             assert float(r[k]) == pytest.approx(m.summary()[k], abs=1e-9), k
         assert float(r["residual_closing"]) == m.solves[1].residual
         assert int(r["steps_he"]) == m.solves[0].steps
+
+
+def test_vectorised_batch_agrees_with_sequential_and_one_member_is_a_single_solve(runs):
+    """The GPU default path on this CPU.  vectorize=True runs the members' steps, and their
+    pair-list rebuilds (`batching.branches("select")`), as one array program: members then
+    differ from sequential runs by rounding, amplified along FIRE's path, but each is an
+    equilibrium to rtol.  A batch of one runs the unbatched single-solve program."""
+    first, seq = runs["first"], runs["seq"]
+    vec = simulate_batch(SCENE, stvk(E_FIRST[0], E_FIRST[2]), valve=first.valve,
+                         vectorize=True)
+    assert vec.vectorized and vec.converged
+    for m, s in zip(vec, (seq[0], seq[2])):
+        assert all(ms.residual <= SCENE.rtol for ms in m.solves)
+        assert abs(m.solves[1].steps - s.solves[1].steps) <= 0.2 * s.solves[1].steps
+        for k in METRICS:
+            assert m.summary()[k] == pytest.approx(s.summary()[k], abs=0.02), k
+    one = simulate_batch(SCENE, stvk(E_FIRST[1]), valve=first.valve, vectorize=True)
+    m, s = one[0], seq[1]
+    assert [x.steps for x in m.solves] == [x.steps for x in s.solves]
+    np.testing.assert_allclose(m.x, s.x, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(m.x_he, s.x_he, rtol=0, atol=1e-9)
