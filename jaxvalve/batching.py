@@ -65,30 +65,24 @@ def branches(policy: str):
         _policy[0] = old
 
 
-@jax.custom_batching.custom_vmap
-def batch_any(pred):
-    """pred (a bool array) itself; under vmap, the OR over the batch (unbatched)."""
-    return pred
+def _batch_reduce(reduce, doc):
+    """The identity, whose vmap rule reduces over the batch (unbatched result)."""
+    def f(x):
+        return x
+    f.__doc__ = doc
+    f = jax.custom_batching.custom_vmap(f)
+
+    @f.def_vmap
+    def rule(axis_size, in_batched, x):
+        return (reduce(x, axis=0) if in_batched[0] else x), False
+
+    return f
 
 
-@batch_any.def_vmap
-def _batch_any_rule(axis_size, in_batched, pred):
-    if in_batched[0]:
-        return jnp.any(pred, axis=0), False
-    return pred, False
-
-
-@jax.custom_batching.custom_vmap
-def batch_max(n):
-    """n itself; under vmap, the maximum over the batch (unbatched)."""
-    return n
-
-
-@batch_max.def_vmap
-def _batch_max_rule(axis_size, in_batched, n):
-    if in_batched[0]:
-        return jnp.max(n, axis=0), False
-    return n, False
+batch_any = _batch_reduce(jnp.any, "pred (a bool array) itself; under vmap, the OR over the "
+                                   "batch (unbatched).")
+batch_max = _batch_reduce(jnp.max, "n itself; under vmap, the maximum over the batch "
+                                   "(unbatched).")
 
 
 def _axes(batched):

@@ -115,8 +115,7 @@ class Evaluator:
         self._direct_jit = jax.jit(jax.value_and_grad(
             lambda rab, xs, st, pl, ar: self._terms(rab, xs, st, pl, ar, False),
             argnums=(0, 1), has_aux=True))
-        self._pull_jit = jax.jit(self._pullback, static_argnums=(1,))
-        self._pull_params_jit = jax.jit(self._pullback_params, static_argnums=(1,))
+        self._pull_jit = jax.jit(self._pullback, static_argnums=(1, 5))
         self._metric_jac_jit = jax.jit(jax.jacrev(self._load_metrics, argnums=(0, 2)),
                                        static_argnums=(1,))
         self._dcc_jit = jax.jit(self.d_cc)
@@ -306,31 +305,19 @@ class Evaluator:
         terms = self.objective.terms(th, self.scene.alpha, metrics, self.d_cc(th), area_ref)
         return sum(terms.values()), terms
 
-    def _pullback(self, rab, load, x, nbrs, mu):
-        """d/d(r, a, b) of <mu, R(x with the template's sutured nodes, params(theta))>."""
+    def _pullback(self, rab, load, x, nbrs, mu, wrt_params=False):
+        """d/d(r, a, b) of <mu, R(x with the template's sutured nodes, params(theta))>; with
+        ``wrt_params`` also d/d(params), a `Params` pytree (material moduli, thickness,
+        pressure, ...; its reference geometry follows the template and gets no cotangent)."""
         from jaxvalve import assembly
 
-        def f(rab):
+        def f(rab, params):
             th = jnp.concatenate([rab, jnp.asarray([self.scene.alpha], rab.dtype)])
-            params = self.base[load].replace(ref=self.design.ref(th))
+            params = params.replace(ref=self.design.ref(th))
             xx = self.design.x_fixed(th, x_free=x)
             ref = assembly.prepare(self.valve.problem, params)
-            R = assembly.residual(xx, self.valve.problem, params, ref, nbrs)
-            return jnp.sum(mu * R)
-        return jax.grad(f)(rab)
-
-    def _pullback_params(self, rab, load, x, nbrs, mu):
-        """d/d(params) of <mu, R(x, params)> at the template's sutured nodes (a `Params`
-        pytree: material moduli, thickness, pressure, ...)."""
-        from jaxvalve import assembly
-
-        th = jnp.concatenate([rab, jnp.asarray([self.scene.alpha], rab.dtype)])
-        xx = self.design.x_fixed(th, x_free=x)
-
-        def f(params):
-            ref = assembly.prepare(self.valve.problem, params)
             return jnp.sum(mu * assembly.residual(xx, self.valve.problem, params, ref, nbrs))
-        return jax.grad(f)(self.base[load].replace(ref=self.design.ref(th)))
+        return jax.grad(f, argnums=(0, 1) if wrt_params else 0)(rab, self.base[load])
 
     def _load_metrics(self, rab, load, x, plan):
         """The smooth metrics of one load, (k,) in METRICS order, with the sutured nodes at
@@ -364,9 +351,8 @@ class Evaluator:
             for k, name in enumerate(names):
                 mu, _ = adjoint_solve(self.valve.problem, params, sol.x, sol.nbrs, J_x[k])
                 mu = jnp.asarray(mu)
-                g = np.asarray(J_rab[k]) + np.asarray(
-                    self._pull_jit(rab, load, sol.x, sol.nbrs, mu))
-                gp = self._pull_params_jit(rab, load, sol.x, sol.nbrs, mu)
+                g_rab, gp = self._pull_jit(rab, load, sol.x, sol.nbrs, mu, True)
+                g = np.asarray(J_rab[k]) + np.asarray(g_rab)
                 d = dict(r=float(g[0]), a=float(g[1]), b=float(g[2]))
                 for f in dataclasses.fields(gp.material):
                     v = getattr(gp.material, f.name)

@@ -46,6 +46,8 @@ def test_unbatched_calls_are_the_plain_operations():
     # under vmap: the reduction over the batch, unbatched
     n = jax.vmap(lambda n: batch_max(n) + 0 * n)(jnp.array([2, 7, 5]))
     np.testing.assert_array_equal(n, [7, 7, 7])
+    a = jax.vmap(lambda p: batch_any(p) | p)(jnp.array([False, True, False]))
+    np.testing.assert_array_equal(a, [True, True, True])
 
 
 def test_unknown_policy_is_rejected():
