@@ -20,7 +20,7 @@ from jaxvalve import Scene, simulate
 from jaxvalve import valve as V
 from jaxvalve.leaflet_mesh import mesh_leaflet
 from jaxvalve.scene import VALVE_DT_MAX
-from jaxvalve.simulation import _measure
+from jaxvalve.simulation import measure
 from jaxvalve.solvers import FIRE
 
 
@@ -45,14 +45,14 @@ def tolerance_sweep(h, model):
     s3, _ = _close(valve, sc, sc.he_pressure, valve.x_start, 1e-8)
     x3 = np.asarray(s3.x)
     ref, _ = _close(valve, sc, sc.pressure, x3, 1e-8)
-    mref = _row(_measure(valve, np.asarray(ref.x), sc.g_c))
+    mref = _row(measure(valve, np.asarray(ref.x), sc.g_c))
     print(f"\nTolerance sweep, {model}, h = {h} mm ({len(valve.triangles)} triangles), 80 mmHg "
           "from the 3 mmHg state; errors vs the 1e-8 solve (mm, NCCA points)")
     print(f"{'rtol':>7s} {'steps':>6s} {'time s':>7s} {'dh_E(80)':>9s} {'dh_C-C':>8s} "
           f"{'dh_avr':>8s} {'dNCCA':>7s}")
     for rtol in (1e-2, 1e-3, 1e-4, 1e-5, 1e-6, 1e-8):
         sol, t = _close(valve, sc, sc.pressure, x3, rtol)
-        err = _row(_measure(valve, np.asarray(sol.x), sc.g_c)) - mref
+        err = _row(measure(valve, np.asarray(sol.x), sc.g_c)) - mref
         print(f"{rtol:7.0e} {int(sol.stats.steps):6d} {t:7.2f} " +
               " ".join(f"{e:+8.4f}" for e in err) + ("" if sol.converged else "  NOT CONVERGED"),
               flush=True)

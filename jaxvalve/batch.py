@@ -52,7 +52,7 @@ from .errors import ConvergenceError, ParameterError
 from .materials import Material
 from .problem import mmhg, validate_params
 from .scene import Scene
-from .simulation import _measure, _quiet, build_scene_valve, compile_timer
+from .simulation import _quiet, build_scene_valve, compile_timer, measure
 from .solvers import RESULTS, Stats, iterate
 from .solvers.base import relative_residual
 
@@ -485,8 +485,8 @@ def simulate_batch(scene: Scene | None = None, materials=None, *, valve=None,
             xs.append(x)
             finite.append(ok)
         say(f"measuring coaptation: member {i + 1}/{B}")
-        m_he = _measure(valve, xs[0], scene.g_c) if finite[0] else None
-        m = _measure(valve, xs[1], scene.g_c) if finite[1] else None
+        m_he = measure(valve, xs[0], scene.g_c) if finite[0] else None
+        m = measure(valve, xs[1], scene.g_c) if finite[1] else None
         out.append(BatchMember(index=i, model=model, material=mat, x=xs[1], x_he=xs[0],
                                metrics=m, metrics_he=m_he, solves=tuple(solves)))
     t_m = time.perf_counter() - t0

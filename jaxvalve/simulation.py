@@ -22,7 +22,7 @@ from .leaflet_mesh import mesh_leaflet
 from .scene import Scene
 from .solvers import RESULTS
 
-__all__ = ["simulate", "SimulationResult", "SolveReport", "compile_timer"]
+__all__ = ["simulate", "SimulationResult", "SolveReport", "compile_timer", "measure"]
 
 
 class compile_timer:
@@ -158,7 +158,9 @@ class SimulationResult:
         return write_outputs(self, out_dir, figures=figures)
 
 
-def _measure(valve, x, g_c):
+def measure(valve, x, g_c):
+    """The exact coaptation metrics (`CoaptationResult`) of the valve in state x (N, 3) mm,
+    with the coaptation distance g_c mm, heights from the annulus level of x."""
     root = valve.root
     s0 = annulus_level(x, np.asarray(valve.problem.fixed), valve.body, root.axis, root.origin)
     return coaptation_metrics(x, valve.triangles, valve.body, np.asarray(valve.ref),
@@ -227,8 +229,8 @@ def simulate(scene: Scene | None = None, *, progress: Callable[[str], None] | No
         states.append(x)
     say("measuring coaptation")
     t0 = time.perf_counter()
-    m_he = _measure(valve, states[0], scene.g_c)
-    m = _measure(valve, states[1], scene.g_c)
+    m_he = measure(valve, states[0], scene.g_c)
+    m = measure(valve, states[1], scene.g_c)
     t_m = time.perf_counter() - t0
     timings = dict(setup=setup, metrics=t_m, total=time.perf_counter() - t_all)
     return SimulationResult(scene=scene, valve=valve, x=states[1], x_he=states[0], metrics=m,

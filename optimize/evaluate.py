@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -228,7 +227,7 @@ class Evaluator:
         the leaflet mesh mapped to ev's template, the closed states of ``ev``, and a
         closure warm-started from the other load for a load the objective did not need.
         Plots (``plot_profiles``, ``plot_valve``) and ``summary()`` work on it."""
-        from jaxvalve.simulation import SimulationResult, SolveReport, _measure, compile_timer
+        from jaxvalve.simulation import SimulationResult, SolveReport, measure, compile_timer
 
         if not ev.converged:
             raise ConvergenceError(f"no result at (r, a, b) = {tuple(ev.rab)}: {ev.reason}")
@@ -269,7 +268,7 @@ class Evaluator:
                                         ok, int(sol.stats.steps), float(sol.stats.residual),
                                         wall, min(ct.seconds, wall))
         t0 = time.perf_counter()
-        m_he, m = (_measure(valve, xs[l], self.scene.g_c) for l in LOAD_ORDER)
+        m_he, m = (measure(valve, xs[l], self.scene.g_c) for l in LOAD_ORDER)
         t_m = time.perf_counter() - t0
         return SimulationResult(
             scene=self.scene.replace(r=tpl.r, a=tpl.a, b=tpl.b), valve=valve, x=xs["closed"],

@@ -28,3 +28,13 @@ def test_help_and_missing_subcommand(capsys):
         main(["--help"])
     assert "membrane" in capsys.readouterr().out
     assert main([]) == 2
+
+
+def test_bad_input_exits_2_with_the_parameter_named_for_every_subcommand(capsys):
+    """`main` maps a `JaxvalveError` of any subcommand to exit code 2 and one line on
+    stderr (the shared handler in `jaxvalve.cli`), with no traceback."""
+    assert main(["membrane", "--rings", "3", "--E", "-1"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("jaxvalve membrane: error:") and "E" in err
+    assert main(["simulate", "--h", "-1"]) == 2
+    assert capsys.readouterr().err.startswith("jaxvalve simulate: error:")

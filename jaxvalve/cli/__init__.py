@@ -1,4 +1,7 @@
-"""Command line: ``jaxvalve <subcommand>``; one module per subcommand."""
+"""Command line: ``jaxvalve <subcommand>``; one module per subcommand.
+
+Exit codes: 0 done, 2 bad input (`JaxvalveError`, its message naming the parameter and its
+valid range), 3 a solve did not converge (`ConvergenceError`, with its residual)."""
 from __future__ import annotations
 
 import argparse
@@ -42,7 +45,15 @@ def main(argv=None) -> int:
         parser.print_help()
         return 2
     enable_compilation_cache()
-    return SUBCOMMANDS[args.command].run(args)
+    from ..errors import ConvergenceError, JaxvalveError
+    try:
+        return SUBCOMMANDS[args.command].run(args)
+    except JaxvalveError as e:          # bad input: the message names the parameter
+        print(f"jaxvalve {args.command}: error: {e}", file=sys.stderr)
+        return 2
+    except ConvergenceError as e:       # a solve that must converge did not
+        print(f"jaxvalve {args.command}: error: {e}", file=sys.stderr)
+        return 3
 
 
 if __name__ == "__main__":

@@ -13,7 +13,6 @@ non-finite objective).
 """
 from __future__ import annotations
 
-import sys
 import tomllib
 from pathlib import Path
 
@@ -98,33 +97,25 @@ def make_objective(args):
 
 def run(args) -> int:
     from optimize import optimize_template
-    from ..errors import ConvergenceError, JaxvalveError
 
     def say(msg):
         print(f"[jaxvalve] {msg}", flush=True)
 
-    try:
-        scene = make_scene(args)
-        if args.rtol is None:
-            scene = scene.replace(rtol=1e-6)      # gradients need a tight equilibrium
-        if args.max_steps is None:
-            # a warm-started closure takes ~500 FIRE steps; a trial that cycles is cut
-            # short and the line search halves the step
-            scene = scene.replace(max_steps=5000)
-        objective = make_objective(args)
-        say("targets: " + "; ".join(t.describe() for t in objective.targets)
-            + f"; size weight {objective.size_weight:g}")
-        res = optimize_template(scene, objective, optimizer=args.optimizer,
-                                max_iter=args.max_iter, max_step=args.max_step,
-                                gtol=args.gtol, ftol=args.ftol, out=args.out,
-                                resume=args.resume, figures=not args.no_figures,
-                                progress=say)
-    except JaxvalveError as e:
-        print(f"jaxvalve optimize: error: {e}", file=sys.stderr)
-        return 2
-    except ConvergenceError as e:
-        print(f"jaxvalve optimize: error: {e}", file=sys.stderr)
-        return 3
+    scene = make_scene(args)
+    if args.rtol is None:
+        scene = scene.replace(rtol=1e-6)      # gradients need a tight equilibrium
+    if args.max_steps is None:
+        # a warm-started closure takes ~500 FIRE steps; a trial that cycles is cut
+        # short and the line search halves the step
+        scene = scene.replace(max_steps=5000)
+    objective = make_objective(args)
+    say("targets: " + "; ".join(t.describe() for t in objective.targets)
+        + f"; size weight {objective.size_weight:g}")
+    res = optimize_template(scene, objective, optimizer=args.optimizer,
+                            max_iter=args.max_iter, max_step=args.max_step,
+                            gtol=args.gtol, ftol=args.ftol, out=args.out,
+                            resume=args.resume, figures=not args.no_figures,
+                            progress=say)
     t = res.template
     print(f"  final template: r = {t['r']:.3f} mm, a = {t['a']:.3f} mm, b = {t['b']:.3f} mm")
     print(f"  objective {res.value:.6g} after {res.records[-1]['iteration']} iterations, "

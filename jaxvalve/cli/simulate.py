@@ -140,7 +140,6 @@ def _table(result):
 
 
 def run(args) -> int:
-    from ..errors import ConvergenceError, JaxvalveError
     from ..report import metrics_json, write_outputs
     from ..simulation import simulate
 
@@ -149,18 +148,11 @@ def run(args) -> int:
     def say(msg):
         print(f"[jaxvalve] {msg}", file=stream, flush=True)
 
-    try:
-        scene = make_scene(args)
-        result = simulate(scene, progress=say, throw=False)
-        written = []
-        if args.out is not None:
-            written = write_outputs(result, args.out, figures=not args.no_figures)
-    except JaxvalveError as e:
-        print(f"jaxvalve simulate: error: {e}", file=sys.stderr)
-        return 2
-    except ConvergenceError as e:
-        print(f"jaxvalve simulate: error: {e}; nothing was written", file=sys.stderr)
-        return 3
+    scene = make_scene(args)
+    result = simulate(scene, progress=say, throw=False)
+    written = []
+    if args.out is not None:
+        written = write_outputs(result, args.out, figures=not args.no_figures)
     if args.json:
         print(json.dumps(metrics_json(result), indent=1, allow_nan=False))
     else:

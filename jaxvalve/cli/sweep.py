@@ -247,7 +247,7 @@ def _fmt(v):
 # ------------------------------------------------------------------------------ run
 def run(args) -> int:
     from ..batch import simulate_batch
-    from ..errors import ConvergenceError, JaxvalveError
+    from ..errors import JaxvalveError
     from ..leaflet_mesh import mesh_leaflet
     from ..scene import Scene
     from .. import valve as V
@@ -255,48 +255,41 @@ def run(args) -> int:
     def say(msg):
         print(f"[jaxvalve sweep] {msg}", file=sys.stderr, flush=True)
 
-    try:
-        _check(args)
-        groups = table_members(args)
-        if args.max_steps <= 0:
-            raise JaxvalveError(f"--max-steps must be a positive integer; got {args.max_steps}")
-        scene = Scene(h=args.h, model=groups[0][0], rtol=args.rtol, max_steps=args.max_steps,
-                      pressure=args.pressure, he_pressure=args.he_pressure)
-        total = sum(len(m) for _, m in groups)
-        say(f"table {args.table}: {total} members in {len(groups)} batch"
-            f"{'es' * (len(groups) != 1)}, h = {args.h} mm")
-        say("building the valve (benchmark root and template)")
-        valve = V.build_valve(scene.load_root(), mesh_leaflet(scene.template(), args.h))
-        say(f"  3 x {len(valve.leaflet.triangles)} triangles")
-        rows, done = [], 0
-        for model, members in groups:
-            res = simulate_batch(scene.replace(model=model), [m for _, m in members],
-                                 valve=valve, throw=False, progress=lambda m: say("  " + m))
-            for (labels, _), row in zip(members, res.rows()):
-                row = {"table": args.table, **labels, **row}
-                row["member"] = len(rows)
-                row.update(_paper(args.table, model, labels))
-                rows.append(row)
-            done += len(members)
-            say(f"{_bar(done, total)}  ({model}: {res.timings['solve']:.1f} s solve, "
-                f"{res.timings['compile']:.1f} s compile)")
-        written = []
-        if args.out is not None:
-            out = Path(args.out)
-            try:
-                out.mkdir(parents=True, exist_ok=True)
-                written.append(write_csv(out / f"table{args.table}.csv", rows))
-                if not args.no_figures:
-                    written.append(heat_map(out / f"table{args.table}.png", args.table, rows,
-                                            args.metric))
-            except OSError as e:
-                raise JaxvalveError(f"cannot write the outputs to '{out}': {e}") from None
-    except JaxvalveError as e:
-        print(f"jaxvalve sweep: error: {e}", file=sys.stderr)
-        return 2
-    except ConvergenceError as e:
-        print(f"jaxvalve sweep: error: {e}", file=sys.stderr)
-        return 3
+    _check(args)
+    groups = table_members(args)
+    if args.max_steps <= 0:
+        raise JaxvalveError(f"--max-steps must be a positive integer; got {args.max_steps}")
+    scene = Scene(h=args.h, model=groups[0][0], rtol=args.rtol, max_steps=args.max_steps,
+                  pressure=args.pressure, he_pressure=args.he_pressure)
+    total = sum(len(m) for _, m in groups)
+    say(f"table {args.table}: {total} members in {len(groups)} batch"
+        f"{'es' * (len(groups) != 1)}, h = {args.h} mm")
+    say("building the valve (benchmark root and template)")
+    valve = V.build_valve(scene.load_root(), mesh_leaflet(scene.template(), args.h))
+    say(f"  3 x {len(valve.leaflet.triangles)} triangles")
+    rows, done = [], 0
+    for model, members in groups:
+        res = simulate_batch(scene.replace(model=model), [m for _, m in members],
+                             valve=valve, throw=False, progress=lambda m: say("  " + m))
+        for (labels, _), row in zip(members, res.rows()):
+            row = {"table": args.table, **labels, **row}
+            row["member"] = len(rows)
+            row.update(_paper(args.table, model, labels))
+            rows.append(row)
+        done += len(members)
+        say(f"{_bar(done, total)}  ({model}: {res.timings['solve']:.1f} s solve, "
+            f"{res.timings['compile']:.1f} s compile)")
+    written = []
+    if args.out is not None:
+        out = Path(args.out)
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+            written.append(write_csv(out / f"table{args.table}.csv", rows))
+            if not args.no_figures:
+                written.append(heat_map(out / f"table{args.table}.png", args.table, rows,
+                                        args.metric))
+        except OSError as e:
+            raise JaxvalveError(f"cannot write the outputs to '{out}': {e}") from None
     _print_table(rows, args.table, sys.stdout)
     for p in written:
         say(f"wrote {p}")
