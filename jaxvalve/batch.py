@@ -448,7 +448,7 @@ def simulate_batch(scene: Scene | None = None, materials=None, *, valve=None,
     t0 = time.perf_counter()
     valve = build_scene_valve(scene, say) if valve is None else valve
     setup = time.perf_counter() - t0
-    x0 = jnp.asarray(valve.x_start)
+    x0 = jnp.asarray(valve.x_start, scene.dtype)
     base = valve.params(members[0], scene.he_pressure, scene.contact_law(), scene.thickness,
                         np.deg2rad(scene.fibre_angle), scene.bending_law())
     validate_params(base)

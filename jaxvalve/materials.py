@@ -208,7 +208,13 @@ class MassSpring(Material):
     so the force has no jump).  Anisotropy (eq. 2.4): each modulus is
     sqrt(Ef^2 cos^2(theta) + Ecf^2 sin^2(theta)), theta the angle between the spring and the
     fibre direction (a spring along the fibres gets Ef).  ``E*_cf`` default to the fibre
-    values (isotropic).  A linear model has E1 = E2 = E3 = E.
+    values (isotropic): with them None, no mixing is traced.
+
+    Linear law (`MassSpring.linear`): E2 = E3 = None (and E2_cf = E3_cf = None) selects
+    psi = E1 eps^2 / 2, with no strain breaks traced.  The choice is static (the pytree
+    structure), so a linear scene never compiles the piecewise law; its energy and forces
+    equal the piecewise law's with E1 = E2 = E3 to rounding (tested).  E2 and E3 are given
+    together or not at all.
     """
 
     E1: Any = 1.0
@@ -223,10 +229,29 @@ class MassSpring(Material):
     needs_springs = True
 
     @classmethod
-    def linear(cls, E):
-        return cls(E1=E, E2=E, E3=E)
+    def linear(cls, E, E_cf=None):
+        """The linear law psi = E eps^2 / 2 (E_cf: cross-fibre modulus, eq. 2.4)."""
+        return cls(E1=E, E2=None, E3=None, E1_cf=E_cf)
+
+    @property
+    def is_linear(self) -> bool:
+        """True (static) when only E1 (and E1_cf) are set: one modulus, no breaks."""
+        return (self.E2 is None and self.E3 is None and self.E2_cf is None
+                and self.E3_cf is None)
+
+    def _check_structure(self):
+        if (self.E2 is None) != (self.E3 is None):
+            raise ParameterError("mass-spring: give E2 and E3 together (the moduli between "
+                                 "and above the strain breaks), or neither for the linear "
+                                 f"law; got E2={self.E2}, E3={self.E3}")
+        if self.E2 is None and (self.E2_cf is not None or self.E3_cf is not None):
+            raise ParameterError("mass-spring: E2_cf / E3_cf need E2 and E3 (the linear law "
+                                 "has one modulus, E1 and E1_cf)")
+        if self.E1 is None:
+            raise ParameterError("mass-spring: E1 (MPa) must be given")
 
     def validate(self):
+        self._check_structure()
         for name in ("E1", "E2", "E3", "E1_cf", "E2_cf", "E3_cf"):
             v = getattr(self, name)
             if v is not None and _concrete(v):
@@ -239,13 +264,18 @@ class MassSpring(Material):
         return self
 
     def stiffest(self):
+        if self.is_linear:
+            return self
         emax = lambda *v: None if v[0] is None else jnp.maximum(jnp.maximum(v[0], v[1]), v[2])
         ef = emax(self.E1, self.E2, self.E3)
         ecf = emax(self.E1_cf, self.E2_cf, self.E3_cf)
         return dataclasses.replace(self, E1=ef, E2=ef, E3=ef, E1_cf=ecf, E2_cf=ecf, E3_cf=ecf)
 
     def moduli(self, cos2):
+        """Per-spring moduli (E1, E2, E3) from eq. 2.4; for the linear law (E1, E1, E1)."""
         def mix(ef, ecf):
+            if ef is None:
+                return mix(self.E1, self.E1_cf)
             if ecf is None:
                 return ef * jnp.ones_like(cos2)
             return jnp.sqrt(ef**2 * cos2 + ecf**2 * (1.0 - cos2))
@@ -256,6 +286,10 @@ class MassSpring(Material):
         l2 = jnp.einsum("mki,mij,mkj->mk", u, C, u)  # (l/L)^2
         l2s, ok = _safe_positive(l2)
         eps = jnp.where(ok, jnp.sqrt(l2s), 0.0) - 1.0
+        self._check_structure()
+        if self.is_linear:   # static: no breaks traced
+            E = self.moduli(geom.cos2)[0]
+            return jnp.sum(0.5 * E * eps**2, axis=-1)
         E1, E2, E3 = self.moduli(geom.cos2)
         return jnp.sum(_piecewise_psi(eps, E1, E2, E3, self.break1, self.break2), axis=-1)
 

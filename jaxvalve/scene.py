@@ -21,13 +21,15 @@ from pathlib import Path
 from .errors import ParameterError
 from .template import Template
 
-__all__ = ["Scene", "BENCHMARK_TEMPLATE", "BENCHMARK_H", "MODELS", "SOLVERS", "CONTACTS"]
+__all__ = ["Scene", "BENCHMARK_TEMPLATE", "BENCHMARK_H", "MODELS", "SOLVERS", "CONTACTS",
+           "PRECISIONS"]
 
 BENCHMARK_TEMPLATE = Template(r=12.0, a=7.1, b=15.0, alpha=160.0)
 BENCHMARK_H = 0.88
 MODELS = ("mass-spring", "stvk", "neo-hookean", "gent")
 SOLVERS = ("fire", "newton", "paper")
 CONTACTS = ("smooth", "paper")
+PRECISIONS = ("float64", "float32")
 
 
 #: FIRE's largest time step for valve closures (mass-scaled; the masses bound the stiffness,
@@ -49,9 +51,13 @@ class Scene:
     pressure, he_pressure: the closing load and the effective-height load (mmHg).
     rtol: relative force residual ||F_free|| / ||F_pressure|| the closure must reach
     (default 1e-4: the coaptation metrics then agree with a 1e-6 solve to ~0.01 mm; see
-    the README's accuracy table).
+    the README's "Run time against error").
     bending: plate bending stiffness as a multiple of the physical D = E H^3 / (12 (1 -
     nu^2)) (`jaxvalve.bending`); 0 gives the pure membrane of DESIGN.md.
+    precision: the floating type of the solve, "float64" (default) or "float32" (states,
+    parameters and forces; the metrics are always measured in float64).  float32 forces
+    carry rounding near 1e-4 of ||F_pressure|| at 3 mmHg, so a float32 closure may stop
+    short of rtol = 1e-4 there (README, "Accuracy against run time").
     """
 
     r: float = BENCHMARK_TEMPLATE.r
@@ -78,6 +84,7 @@ class Scene:
     max_steps: int = 50_000
     g_c: float = 0.5
     bending: float = 1.0
+    precision: str = "float64"
 
     def __post_init__(self):
         if self.model not in MODELS:
@@ -86,6 +93,9 @@ class Scene:
             raise ParameterError(f"solver must be one of {SOLVERS}; got {self.solver!r}")
         if self.contact not in CONTACTS:
             raise ParameterError(f"contact must be one of {CONTACTS}; got {self.contact!r}")
+        if self.precision not in PRECISIONS:
+            raise ParameterError(f"precision must be one of {PRECISIONS}; "
+                                 f"got {self.precision!r}")
         for name in ("h", "thickness", "g_c", "rtol"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
@@ -101,6 +111,12 @@ class Scene:
         if not (isinstance(self.max_steps, int) and self.max_steps > 0):
             raise ParameterError(f"max_steps must be a positive integer; got {self.max_steps!r}")
         self.template()  # validates r, a, b, alpha
+
+    @property
+    def dtype(self):
+        """The NumPy floating type of the solve (`precision`)."""
+        import numpy as np
+        return np.dtype(self.precision)
 
     def replace(self, **kw) -> "Scene":
         return dataclasses.replace(self, **kw)

@@ -202,7 +202,7 @@ def simulate(scene: Scene | None = None, *, progress: Callable[[str], None] | No
     material, contact, solver = scene.material(), scene.contact_law(), scene.make_solver()
     bending = scene.bending_law()
     reports, states = [], []
-    x = valve.x_start
+    x = np.asarray(valve.x_start, scene.dtype)
     for p in (scene.he_pressure, scene.pressure):
         say(f"closing at {p:g} mmHg ({scene.model}, {scene.solver} solver, {scene.contact} "
             "contact)")
@@ -226,7 +226,7 @@ def simulate(scene: Scene | None = None, *, progress: Callable[[str], None] | No
             raise ConvergenceError(f"valve closure at {p:g} mmHg produced non-finite "
                                    "positions", sol)
         reports.append(rep)
-        states.append(x)
+        states.append(x.astype(np.float64))
     say("measuring coaptation")
     t0 = time.perf_counter()
     m_he = measure(valve, states[0], scene.g_c)

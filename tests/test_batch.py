@@ -284,3 +284,23 @@ def test_vectorised_batch_agrees_with_sequential_and_one_member_is_a_single_solv
     assert [x.steps for x in m.solves] == [x.steps for x in s.solves]
     np.testing.assert_allclose(m.x, s.x, rtol=0, atol=1e-9)
     np.testing.assert_allclose(m.x_he, s.x_he, rtol=0, atol=1e-9)
+
+
+def test_linear_mass_spring_members_stack_without_the_unused_moduli():
+    """The linear law (E2 = E3 = None) stacks like any material; a dict over a linear
+    template varies E1, or E2 and E3 together (then the piecewise law), and rejects E2
+    alone, naming the member."""
+    members, stacked = stack_materials([MassSpring.linear(0.5), MassSpring.linear(2.0)])
+    assert stacked.E1.shape == (2,) and stacked.E2 is None and stacked.E3 is None
+    assert stacked.is_linear and stacked.stiffest() is stacked
+    members, stacked = stack_materials({"E1": [0.5, 2.0]}, template=MassSpring.linear(1.0))
+    assert members[1] == MassSpring.linear(2.0) and stacked.is_linear
+    members, stacked = stack_materials({"E2": [0.5, 2.0], "E3": [3.0, 3.0]},
+                                       template=MassSpring.linear(1.0))
+    assert not stacked.is_linear and members[0] == MassSpring(E1=1.0, E2=0.5, E3=3.0)
+    with pytest.raises(ParameterError, match=r"materials\[0\]: mass-spring: give E2 and E3 "
+                                             r"together"):
+        stack_materials({"E2": [0.5]}, template=MassSpring.linear(1.0))
+    with pytest.raises(ParameterError, match=r"materials\[1\].*differs in model or in the "
+                                             r"fields set"):
+        stack_materials([MassSpring.linear(1.0), MassSpring(E1=1.0, E2=1.0, E3=1.0)])

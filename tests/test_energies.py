@@ -231,3 +231,59 @@ def test_mass_spring_linear_small_strain_matches_isotropic_membrane():
     t1 = -float(jnp.sum(f[:, 0] * p[:, 0])) / 4.0
     # each triangle: 3 springs with energy H A E eps^2 / 2 -> w = 3/2 H E eps^2, T1 = dw/dl1 / 2
     np.testing.assert_allclose(t1, 1.5 * H * 1.0 * eps, rtol=1e-9)
+
+
+@pytest.mark.parametrize("E_cf", [None, 0.4])
+@pytest.mark.parametrize("stretch", [1.02, 1.25, 1.6])
+def test_mass_spring_linear_law_equals_piecewise_with_equal_moduli(stretch, E_cf):
+    """The linear law (E2 = E3 = None, issue 5 skip) gives the piecewise law's energy and
+    forces with E1 = E2 = E3 to rounding, for strains below (1.02), between (1.25) and
+    above (1.6) the breaks 0.175 and 0.3, with and without anisotropy."""
+    p, t = meshgen.rectangle(2.0, 1.5, 4, 3)
+    lin = MassSpring.linear(0.7, E_cf)
+    cf = {} if E_cf is None else dict(E1_cf=E_cf, E2_cf=E_cf, E3_cf=E_cf)
+    pw = MassSpring(E1=0.7, E2=0.7, E3=0.7, **cf)
+    assert lin.is_linear and not pw.is_linear and lin.stiffest() is lin
+    rng = np.random.default_rng(1)
+    x = jnp.asarray(meshgen.lift(p * np.array([stretch, 1.0]))
+                    + 0.01 * rng.normal(size=(len(p), 3)))
+    out = []
+    for mat in (lin, pw):
+        prob, params, r = _setup(mat, p, t)
+        e, g = jax.value_and_grad(_energy)(x, prob, params, r)
+        out.append((float(e), np.asarray(g)))
+    assert out[0][0] > 0
+    np.testing.assert_allclose(out[0][0], out[1][0], rtol=1e-13)
+    np.testing.assert_allclose(out[0][1], out[1][1], rtol=1e-11, atol=1e-13 * np.abs(
+        out[1][1]).max())
+
+
+def test_mass_spring_linear_law_traces_no_breaks():
+    """A linear scene compiles only the linear law: its energy's jaxpr holds fewer
+    operations than the piecewise law's and no clamp / min / max of the breaks, and its
+    pytree has one modulus leaf less per unused field."""
+    p, t = meshgen.rectangle(1.0, 1.0, 2, 2)
+    x = jnp.asarray(meshgen.lift(p * 1.1))
+    n_eqn = {}
+    for name, mat in (("lin", MassSpring.linear(1.0)), ("pw", MassSpring(1.0, 1.0, 1.0))):
+        prob, params, r = _setup(mat, p, t)
+        jaxpr = jax.make_jaxpr(lambda y: _energy(y, prob, params, r))(x).jaxpr
+        prims = {str(e.primitive) for e in jaxpr.eqns}
+        n_eqn[name] = len(jaxpr.eqns)
+        if name == "lin":
+            assert not prims & {"min", "max", "clamp"}, prims
+    assert n_eqn["lin"] < n_eqn["pw"] - 5, n_eqn
+    assert len(jax.tree_util.tree_leaves(MassSpring.linear(1.0))) == 3   # E1, breaks
+
+
+def test_mass_spring_moduli_given_in_part_are_rejected():
+    from jaxvalve.errors import ParameterError
+    with pytest.raises(ParameterError, match="give E2 and E3 together"):
+        MassSpring(E1=1.0, E2=0.5, E3=None).validate()
+    with pytest.raises(ParameterError, match="E2_cf / E3_cf need E2 and E3"):
+        MassSpring(E1=1.0, E2=None, E3=None, E2_cf=0.3).validate()
+    mat = MassSpring(E1=1.0, E2=0.5, E3=None)
+    p, t = meshgen.rectangle(1.0, 1.0, 1, 1)
+    prob, params, r = _setup(MassSpring.linear(1.0), p, t)
+    with pytest.raises(ParameterError, match="give E2 and E3 together"):
+        mat.energy_density(jnp.eye(2)[None].repeat(len(t), 0), r.springs)

@@ -50,6 +50,7 @@ def test_toml_scene_with_overrides(tmp_path):
     (dict(pressure=float("nan")), "pressure must be"),
     (dict(b=10.0), "b must exceed"),
     (dict(model="mass-spring", E1=0.1), "give all of E1, E2, E3"),
+    (dict(precision="float16"), r"precision must be one of \('float64', 'float32'\)"),
 ])
 def test_bad_scenes_are_rejected(kw, match):
     with pytest.raises(ParameterError, match=match):

@@ -286,3 +286,20 @@ def test_soft_min_validate_rejects_bad_softness(tau):
 def test_soft_min_validate_accepts_defaults():
     SmoothContact(soft_min=True).validate()
     SmoothContact(soft_min=True, softness=0.0999).validate()
+
+
+def test_nearest_search_in_float32_finds_the_float64_triangles(world):
+    """The search packs its squared distances into 64-bit keys; a float32 state is widened
+    exactly, so it finds the same nearest triangles at float32 distances."""
+    t64, s64, f64, d64 = (np.asarray(a) for a in nearest_triangles(world.x, world.tri,
+                                                                    world.nbrs))
+    x32 = world.x.astype(jnp.float32)
+    t32, s32, f32, d32 = nearest_triangles(x32, world.tri, world.nbrs)
+    assert d32.dtype == jnp.float32 and s32.dtype == jnp.float32
+    t32, s32, f32, d32 = (np.asarray(a) for a in (t32, s32, f32, d32))
+    np.testing.assert_array_equal(f32, f64)
+    assert f64.sum() > 20
+    np.testing.assert_allclose(d32[f64], d64[f64], rtol=1e-5, atol=1e-6)
+    # ties (parallel sheets, creases) may go to another triangle at the same distance
+    same = t32[f64] == t64[f64]
+    assert same.mean() > 0.9

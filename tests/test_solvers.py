@@ -157,3 +157,22 @@ def test_fire_with_no_step_reports_no_convergence_and_no_residual(disk):
     assert np.isinf(float(sol.stats.residual))
     with pytest.raises(ConvergenceError, match="residual"):
         equilibrium.solve(prob, _params(ref), x0, FIRE(max_steps=0))
+
+
+def test_float32_solve_agrees_with_float64_and_reports_its_rounding_floor(disk):
+    """A float32 start runs the whole solve in float32: it reaches rtol 1e-4 and matches
+    the float64 equilibrium to float32 accuracy; asked for 1e-9, below float32 rounding,
+    it stops with a finite residual and says it did not converge."""
+    prob, ref, x0 = disk
+    params = _params(ref)
+    s64 = equilibrium.solve(prob, params, x0, FIRE(rtol=1e-8))
+    x32 = x0.astype(jnp.float32)
+    s32 = equilibrium.solve(prob, params, x32, FIRE(rtol=1e-4))
+    assert s32.x.dtype == jnp.float32 and s32.converged
+    w = float(jnp.max(s64.x[:, 2]))
+    np.testing.assert_allclose(np.asarray(s32.x, float), s64.x, atol=2e-3 * w)
+    low = equilibrium.solve(prob, params, x32, FIRE(rtol=1e-9, max_steps=3000), throw=False)
+    assert not low.converged and np.isfinite(float(low.stats.residual))
+    assert float(low.stats.residual) > 1e-9
+    with pytest.raises(ConvergenceError, match="residual"):
+        equilibrium.solve(prob, params, x32, FIRE(rtol=1e-9, max_steps=3000))

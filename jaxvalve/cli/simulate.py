@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 import sys
 
-from ..scene import CONTACTS, MODELS, SOLVERS
+from ..scene import CONTACTS, MODELS, PRECISIONS, SOLVERS
 
 # flag -> (Scene field, type, help)
 _FLAGS = {
@@ -95,6 +95,8 @@ def add_scene_arguments(p):
                                 "(default smooth)")
             g.add_argument("--solver", choices=SOLVERS,
                            help="equilibrium solver (default fire)")
+            g.add_argument("--precision", choices=PRECISIONS,
+                           help="floating type of the solve (default float64)")
         for flag, typ, text in flags:
             g.add_argument(flag, type=typ, dest=_field(flag), metavar=typ.__name__.upper(),
                            help=text)
@@ -105,7 +107,7 @@ def make_scene(args):
     from ..errors import ParameterError
     from ..scene import Scene
 
-    names = ["model", "contact", "solver"] + [_field(f) for fl in _FLAGS.values()
+    names = ["model", "contact", "solver", "precision"] + [_field(f) for fl in _FLAGS.values()
                                               for f, _, _ in fl]
     kw = {k: getattr(args, k) for k in names if getattr(args, k) is not None}
     if args.root is not None:

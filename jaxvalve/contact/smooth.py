@@ -163,7 +163,8 @@ def nearest_triangles(x, triangles, nbrs: NeighbourList, one_sided: bool = False
         cols = tuple(table[k][t] for k in range(table.shape[0]))      # 16 x (C, W)
         node = jnp.clip(nbrs.group_node[rg], 0, n - 1)
         d2, back = nearest_search_soa(tuple(c[node][:, None] for c in xc), cols)
-        key = jax.lax.bitcast_convert_type(d2, jnp.int64) & clear
+        # the key packs a float64 (a float32 solve's distances are widened exactly)
+        key = jax.lax.bitcast_convert_type(d2.astype(jnp.float64), jnp.int64) & clear
         if one_sided:
             key = key | jnp.left_shift(back.astype(jnp.int64), SLOT_BITS)
         local = (r0 + jnp.arange(C, dtype=jnp.int32) - nbrs.group_row[rg])[:, None] * W + lane
@@ -179,7 +180,8 @@ def nearest_triangles(x, triangles, nbrs: NeighbourList, one_sided: bool = False
     row = jnp.clip(nbrs.group_row + slot // W, 0, R - 1)
     tri = jnp.clip(nbrs.cand[row, slot % W], 0, m - 1)
     side = jnp.where((gkey >> SLOT_BITS) & 1 == 1, -1.0, 1.0).astype(x.dtype)
-    d2 = jax.lax.bitcast_convert_type(jnp.where(found, gkey & clear, 0), x.dtype)
+    d2 = jax.lax.bitcast_convert_type(jnp.where(found, gkey & clear, 0),
+                                      jnp.float64).astype(x.dtype)
     return tri, side, found, jnp.where(found, jnp.sqrt(d2), jnp.inf)
 
 
