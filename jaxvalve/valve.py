@@ -19,7 +19,7 @@ from .errors import ConvergenceError, ParameterError
 from .leaflet_mesh import LeafletMesh
 from .placement import place_leaflet
 from .problem import Params, Problem, make_problem, mmhg
-from .solvers import FIRE
+from .solvers import FIRE, RESULTS
 
 __all__ = ["Valve", "build_valve", "settle", "close", "valve_contact"]
 
@@ -120,11 +120,42 @@ def settle(valve: Valve, material, *, solver=None, thickness=0.3) -> Valve:
 
 
 def close(valve: Valve, material, pressure_mmhg=80.0, *, solver=None, contact=None,
-          thickness=0.3, fibre_angle=0.0, bending=None, x0=None, throw=True):
-    """Equilibrium of the valve under ``pressure_mmhg`` from ``x0`` (default x_start)."""
+          thickness=0.3, fibre_angle=0.0, bending=None, x0=None, throw=True,
+          check_state=False, nbrs=None):
+    """Equilibrium of the valve under ``pressure_mmhg`` from ``x0`` (default x_start).
+
+    check_state: test a converged state with `leaflet_crossings` and
+    `checks.triangle_checks` (host side, ~10 ms at h = 2 mm); if leaflets cross, the
+    result becomes `RESULTS.leaflets_cross`, and if a triangle is folded over its
+    neighbour or collapsed, `RESULTS.inverted_triangles` (not converged; raised as
+    `ConvergenceError` when ``throw``).  The contact law acts between nodes and the other
+    leaflets' faces within its pair-list range, so it can neither see two faces that
+    graze through each other between nodes (coarse meshes, at the three-leaflet
+    junction) nor pull back leaflets started more than ~1 mm through one another; and a
+    mass-spring triangle turned over has the same spring lengths, so only bending resists
+    it.  Without this check such states are returned as converged (README, Known limits).
+    nbrs: a contact pair list to start from (`equilibrium.solve`), e.g. an empty one of
+    larger capacity (`equilibrium.stale_pairs`) so that a crumpling closure does not
+    overflow and recompile."""
     params = valve.params(material, pressure_mmhg, contact, thickness, fibre_angle, bending)
     x0 = valve.x_start if x0 is None else x0
-    return equilibrium.solve(valve.problem, params, jnp.asarray(x0), solver, throw=throw)
+    sol = equilibrium.solve(valve.problem, params, jnp.asarray(x0), solver,
+                            throw=throw and not check_state, nbrs=nbrs)
+    if check_state and sol.converged:
+        from .checks import triangle_checks
+        x = np.asarray(sol.x, np.float64)
+        code = None
+        if np.all(np.isfinite(x)) and len(leaflet_crossings(valve, x)):
+            code = RESULTS.leaflets_cross
+        elif not triangle_checks(valve.ref, valve.triangles, x).ok:
+            code = RESULTS.inverted_triangles
+        if code is not None:
+            sol = dataclasses.replace(sol, result=jnp.asarray(code,
+                                                              jnp.asarray(sol.result).dtype))
+    if throw and check_state and not sol.converged:
+        raise ConvergenceError(f"valve closure at {pressure_mmhg:g} mmHg did not converge: "
+                               f"{sol.describe()}", sol)
+    return sol
 
 
 def leaflet_crossings(valve: Valve, x) -> np.ndarray:

@@ -25,6 +25,8 @@ class RESULTS(enum.IntEnum):
     stretch_limit = 3
     neighbour_overflow = 4
     stagnation = 5
+    leaflets_cross = 6     # set by `jaxvalve.valve.close(..., check_state=True)`
+    inverted_triangles = 7  # set by `jaxvalve.valve.close(..., check_state=True)`
 
     @property
     def message(self):
@@ -38,6 +40,11 @@ _MESSAGES = {
     RESULTS.stretch_limit: "a triangle passed the material's stretch limit (Gent) or collapsed",
     RESULTS.neighbour_overflow: "the contact pair list overflowed its capacity",
     RESULTS.stagnation: "the solver stagnated: no step reduced the residual",
+    RESULTS.leaflets_cross: ("the force residual met the tolerance but leaflets cross one "
+                             "another (exact triangle-triangle test)"),
+    RESULTS.inverted_triangles: ("the force residual met the tolerance but a triangle is "
+                                 "folded over its neighbour or collapsed "
+                                 "(jaxvalve.checks.triangle_checks)"),
 }
 
 

@@ -1,0 +1,132 @@
+"""Stress suite, part 1 (issue 5): the triangle checks, and a small part of the matrix.
+
+Every run must end converged (all checks passed) or reported (non-convergence with its
+cause, or a clear error); never silently wrong.  Benchmark template at h = 2 mm (3 x 253
+triangles), at most 3000 FIRE steps a closure.  The full matrix is
+``benchmarks/stress.py``.
+"""
+import numpy as np
+import pytest
+
+from jaxvalve import stress as S
+from jaxvalve.checks import (crossing_depth, gent_invariant, interior_edges,
+                             inverted_triangles, triangle_checks)
+from jaxvalve.meshgen import disk
+from jaxvalve.scene import Scene
+
+MAX_STEPS = 3000
+
+
+# ----------------------------------------------------------------------- checks
+def _sheet():
+    p, t, _ = disk(5.0, 6)
+    return p, t
+
+
+def test_checks_accept_a_good_state():
+    """A flat disc stretched by 10 % and bent into a cap passes."""
+    p, t = _sheet()
+    x = np.column_stack([1.1 * p, 0.02 * np.sum(p * p, axis=1)])
+    rep = triangle_checks(p, t, x)
+    assert rep.ok and rep.describe() == "ok"
+    assert rep.min_J > 1.1 and rep.max_stretch < 1.2 and rep.max_fold_deg < 30
+    assert len(inverted_triangles(p, t, x)) == 0
+
+
+def test_checks_catch_an_inverted_triangle():
+    """An interior node pulled through the opposite edge of its star turns its
+    triangles over their neighbours: they are reported as folded."""
+    p, t = _sheet()
+    x = np.column_stack([p, np.zeros(len(p))])
+    edges = interior_edges(t)
+    assert len(edges) > 0
+    # the node nearest the centre, moved across its whole star (past its neighbours)
+    v = int(np.argmin(np.sum(p * p, axis=1)))
+    nb = np.unique(t[np.any(t == v, axis=1)])
+    nb = nb[nb != v]
+    far = nb[np.argmax(p[nb, 0])]
+    x[v, :2] = p[far] + 1.0 * (p[far] - p[v])
+    rep = triangle_checks(p, t, x)
+    assert not rep.ok and len(rep.folded) > 0 and rep.max_fold_deg > 150
+    bad = inverted_triangles(p, t, x)
+    assert set(bad) <= set(np.flatnonzero(np.any(t == v, axis=1))) | set(
+        np.flatnonzero(np.any(np.isin(t, nb), axis=1)))
+    assert len(bad) > 0
+
+
+def test_checks_catch_a_collapsed_triangle_and_nan():
+    p, t = _sheet()
+    x = np.column_stack([p, np.zeros(len(p))])
+    a, b, c = t[0]
+    x[c] = 0.5 * (x[a] + x[b])  # triangle 0 flattened onto its edge
+    rep = triangle_checks(p, t, x)
+    assert 0 in rep.collapsed and not rep.ok
+    x[0, 0] = np.nan
+    rep = triangle_checks(p, t, x)
+    assert not rep.ok and rep.describe() == "non-finite coordinates"
+
+
+def test_gent_invariant_and_crossing_depth():
+    p, t = _sheet()
+    x = np.column_stack([1.2 * p, np.zeros(len(p))])   # equibiaxial 1.2
+    inv = gent_invariant(p, t, x)
+    assert np.allclose(inv, 2 * 1.44 + 1 / 1.44**2 - 3)
+    # two triangles crossing: one pokes 0.3 mm through the other
+    y = np.array([[0, 0, 0], [2, 0, 0], [0, 2, 0], [0.5, 0.5, -0.3], [0.5, 0.5, 1.0],
+                  [1.5, 1.5, 1.0]], float)
+    tri = np.array([[0, 1, 2], [3, 4, 5]])
+    assert crossing_depth(y, tri, np.array([[0, 1]])) == pytest.approx(0.3)
+    assert crossing_depth(y, tri, np.array([[0, 1], [1, 0]])) == pytest.approx(0.3)
+    assert crossing_depth(y, tri, np.zeros((0, 2), int)) == 0.0
+
+
+# ----------------------------------------------------------------------- runs
+@pytest.fixture(scope="module")
+def valve():
+    return S.make_valve(Scene().template(), 2.0)
+
+
+def _never_silent(records):
+    for r in records:
+        assert r.outcome in ("converged", "reported"), (r.outcome, r.cause)
+        if r.outcome == "converged":
+            assert r.crossings == 0 and r.residual < 1e-4 and np.isfinite(r.h_E)
+        else:
+            assert r.cause
+
+
+def test_stvk_float64_closes_cleanly_and_soft_runs_report(valve):
+    """StVK, float64: E = 1 MPa closes at 3 and 80 mmHg with every check passed and no
+    crossing; a soft leaflet under the diastolic load (E = 0.1 MPa, 80 mmHg; FIRE stalls
+    there, README Known limits) converges cleanly or reports why not."""
+    recs = S.run_group(valve, template="benchmark", mesh="regular", model="stvk",
+                       precision="float64", Es=(1.0,), Ps=(3.0, 80.0), max_steps=MAX_STEPS)
+    recs += S.run_group(valve, template="benchmark", mesh="regular", model="stvk",
+                        precision="float64", Es=(0.1,), Ps=(80.0,), max_steps=MAX_STEPS)
+    _never_silent(recs)
+    ok = {r.P: r for r in recs if r.E == 1.0}
+    for P in (3.0, 80.0):
+        assert ok[P].outcome == "converged", ok[P].cause
+        assert ok[P].crossings == 0 and ok[P].min_J > 0.5 and ok[P].max_fold_deg < 150
+    assert ok[80.0].h_E > 15
+
+
+def test_float32_runs_never_silent(valve):
+    """float32: the 3 mmHg closure stalls near its rounding floor (about 4e-4 of the
+    pressure force) and says so; the 80 mmHg closure from there converges or reports."""
+    recs = S.run_group(valve, template="benchmark", mesh="regular", model="stvk",
+                       precision="float32", Es=(1.0,), Ps=(3.0, 80.0), max_steps=MAX_STEPS)
+    _never_silent(recs)
+    for r in recs:
+        if r.outcome == "reported":
+            assert r.result in ("max_steps_reached", "leaflets_cross", "inverted_triangles",
+                                "stretch_limit"), r.cause
+
+
+def test_summary_table_counts(valve):
+    recs = S.run_invalid_templates()
+    assert [r.outcome for r in recs] == ["reported"] * 3
+    assert all("template b must exceed" in r.cause for r in recs)
+    t = S.summarise(recs)
+    assert t["all", ""] == dict(tried=3, converged=0, reported=3, silent=0, guard=0)
+    assert "| all |  | 3 | 0 | 3 | 0 | 0 |" in S.format_table(recs)

@@ -1,0 +1,102 @@
+"""Stress suite, part 2 (issue 5): hard cases.  Gent near its stretch limit, the piecewise
+mass-spring modulus (eq. 3.3), a start with the leaflets pushed through one another, and
+meshes with perturbed and sliver triangles.  Each run converges with every check passed
+or reports why not; never silently wrong.  Benchmark template, h = 2 mm."""
+import numpy as np
+import pytest
+
+from jaxvalve import stress as S
+from jaxvalve import valve as V
+from jaxvalve.leaflet_mesh import mesh_leaflet
+from jaxvalve.scene import Scene
+
+MAX_STEPS = 3000
+H = 2.0
+
+
+@pytest.fixture(scope="module")
+def mesh():
+    return mesh_leaflet(Scene().template(), H)
+
+
+@pytest.fixture(scope="module")
+def valve(mesh):
+    return S.make_valve(Scene().template(), H, mesh)
+
+
+def _never_silent(records):
+    for r in records:
+        assert r.outcome in ("converged", "reported"), (r.outcome, r.cause)
+
+
+def test_gent_near_its_stretch_limit(valve):
+    """Gent with a small Jm.  Jm = 0.3: the closure at 80 mmHg gets near the limit (its
+    largest I1 + 1/I2 - 3 is ~0.8 Jm) and converges with every triangle inside it.
+    Jm = 0.1: the placement itself already passes the limit (I1 + 1/I2 - 3 = 0.25 in its
+    most stretched triangle), and the solve reports stretch_limit at once."""
+    recs = []
+    for jm in (0.3, 0.1):
+        recs += S.run_group(valve, template="benchmark", mesh="regular", model="gent",
+                            precision="float64", Es=(1.0,), Ps=(3.0, 80.0),
+                            max_steps=MAX_STEPS, case="gent-limit", extra=dict(Jm=jm))
+    _never_silent(recs)
+    for r in recs:
+        if r.outcome == "converged":
+            assert r.gent_ratio < 1.0
+        else:
+            assert r.result in ("stretch_limit", "max_steps_reached", "leaflets_cross",
+                                "inverted_triangles",
+                                "stagnation"), r.cause
+    near = [r for r in recs if r.extra == "Jm=0.3"]
+    assert all(r.outcome == "converged" for r in near), [r.cause for r in near]
+    assert max(r.gent_ratio for r in near) > 0.5
+    low = [r for r in recs if r.extra == "Jm=0.1"]
+    assert all(r.result == "stretch_limit" for r in low)
+
+
+def test_piecewise_mass_spring(valve):
+    """Eq. 3.3 with E1 = 0.1, E2 = 1, E3 = 1.2 MPa (breaks at strains 0.175 and 0.3)."""
+    recs = S.run_group(valve, template="benchmark", mesh="regular", model="mass-spring",
+                       precision="float64", Es=(1.0,), Ps=(80.0,), max_steps=MAX_STEPS,
+                       case="piecewise", extra=dict(E1=0.1, E2=1.0, E3=1.2))
+    _never_silent(recs)
+    assert recs[0].extra == "E1=0.1 E2=1 E3=1.2"
+
+
+def test_large_initial_penetration_resolves_or_reports(valve):
+    """Leaflets pushed 1.5 mm through one another at the start (the start crosses): the
+    closure ends without crossings or reports leaflets_cross; it never claims a crossed
+    state as converged."""
+    x_closed = S.closed_state(valve, model="stvk", max_steps=MAX_STEPS)
+    assert x_closed is not None
+    x0 = S.penetrated_start(valve, x_closed, 1.5)
+    assert len(V.leaflet_crossings(valve, x0)) > 0
+    assert len(V.leaflet_crossings(valve, x_closed)) == 0
+    rec = S.run_penetration(valve, template="benchmark", depth=1.5, x_closed=x_closed,
+                            max_steps=MAX_STEPS)
+    assert rec.start.startswith("penetrated (") and rec.start != "penetrated (0 crossing pairs)"
+    _never_silent([rec])
+    if rec.outcome == "converged":
+        assert rec.crossings == 0
+    else:
+        assert rec.result in ("leaflets_cross", "inverted_triangles", "max_steps_reached"), \
+            rec.cause
+
+
+def test_perturbed_and_sliver_meshes(mesh):
+    """A randomly perturbed mesh and one with four sliver triangles (smallest angle ~3
+    degrees): closures at 80 mmHg converge cleanly or report."""
+    pm = S.perturbed_mesh(mesh, 0.3, seed=0)
+    assert np.all(pm.triangles == mesh.triangles)
+    moved = np.linalg.norm(pm.points - mesh.points, axis=1)
+    assert moved.max() > 0.1 * H and moved.max() <= 0.3 * H + 1e-12
+    qm = S.poor_mesh(mesh, 4, 3.0, seed=1)
+    ang = S.min_angles(qm.points, qm.triangles)
+    assert np.sum(ang < 5.0) >= 4 and np.sum(S.min_angles(mesh.points, mesh.triangles) < 5) == 0
+    tpl = Scene().template()
+    recs = []
+    for name, m in (("perturbed", pm), ("slivers", qm)):
+        recs += S.run_group(S.make_valve(tpl, H, m), template="benchmark", mesh=name,
+                            model="stvk", precision="float64", Es=(1.0,), Ps=(80.0,),
+                            max_steps=MAX_STEPS, case=name)
+    _never_silent(recs)
