@@ -52,6 +52,7 @@ from .errors import ConvergenceError, ParameterError
 from .materials import Material
 from .problem import mmhg, validate_params
 from .scene import Scene
+from . import valve as V
 from .simulation import _quiet, build_scene_valve, compile_timer, measure
 from .solvers import RESULTS, Stats, iterate
 from .solvers.base import relative_residual
@@ -478,6 +479,9 @@ def simulate_batch(scene: Scene | None = None, materials=None, *, valve=None,
             x = np.asarray(st["x"][i])
             ok = bool(np.all(np.isfinite(x)))
             code = int(st["result"][i]) if ok else int(RESULTS.nonfinite)
+            if code == RESULTS.successful:     # crossed leaflets, folded triangles
+                bad = V.state_failure(valve, x)
+                code = code if bad is None else int(bad)
             solves.append(MemberSolve(pressure=float(p), result=RESULTS(code).name,
                                       converged=code == RESULTS.successful,
                                       steps=int(st["steps"][i]),

@@ -190,7 +190,10 @@ def simulate(scene: Scene | None = None, *, progress: Callable[[str], None] | No
 
     progress: called with one line of text per phase (e.g. ``print``).
     throw: raise `ConvergenceError` (with the residual) when a solve did not converge;
-    with throw=False the result is returned and ``result.converged`` is False.
+    with throw=False the result is returned and ``result.converged`` is False.  A state
+    the solver accepts is checked independently (`jaxvalve.valve.state_failure`): crossed
+    leaflets or a collapsed or folded triangle make it not converged
+    (``leaflets_cross``, ``inverted_triangles``).
     valve: a prebuilt `Valve` for this scene's root and template (skips the setup).
     """
     scene = Scene() if scene is None else scene
@@ -210,7 +213,7 @@ def simulate(scene: Scene | None = None, *, progress: Callable[[str], None] | No
             t0 = time.perf_counter()
             sol = V.close(valve, material, p, solver=solver, contact=contact,
                           thickness=scene.thickness, fibre_angle=np.deg2rad(scene.fibre_angle),
-                          bending=bending, x0=x, throw=False)
+                          bending=bending, x0=x, throw=False, check_state=True)
             jax.block_until_ready(sol.x)
             wall = time.perf_counter() - t0
         rep = SolveReport(pressure=float(p), result=RESULTS(int(sol.result)).name,

@@ -353,7 +353,7 @@ DIVERGED_FACTOR = 4.0
 
 def _solve_stage(valve, scene, p, x0):
     """(solution, x float64, note) of one closure of at most ``scene.max_steps`` FIRE
-    steps.  Above 2 `LEG_STEPS` steps it runs in two legs, `LEG_STEPS` steps and then the
+    steps.  From 4 `LEG_STEPS` steps on it runs in two legs, `LEG_STEPS` steps and then the
     rest from the state the first reached (two compiled solves per model and precision).
     After a first leg that did not converge, a state whose leaflets have left the root (a
     node `DIVERGED_FACTOR` times farther from the origin than in the placement: soft
@@ -362,7 +362,7 @@ def _solve_stage(valve, scene, p, x0):
     contact pair list is rebuilt at each)."""
     import jax
     legs = ([min(LEG_STEPS, scene.max_steps), scene.max_steps - LEG_STEPS]
-            if scene.solver == "fire" and scene.max_steps > 2 * LEG_STEPS
+            if scene.solver == "fire" and scene.max_steps >= 4 * LEG_STEPS
             else [scene.max_steps])
     origin = np.asarray(valve.root.origin, float)
     size = float(np.max(np.linalg.norm(np.asarray(valve.x_placed) - origin, axis=1)))

@@ -21,7 +21,8 @@ from .placement import place_leaflet
 from .problem import Params, Problem, make_problem, mmhg
 from .solvers import FIRE, RESULTS
 
-__all__ = ["Valve", "build_valve", "settle", "close", "valve_contact"]
+__all__ = ["Valve", "build_valve", "settle", "close", "valve_contact", "state_failure",
+           "leaflet_crossings"]
 
 
 def valve_contact():
@@ -142,13 +143,7 @@ def close(valve: Valve, material, pressure_mmhg=80.0, *, solver=None, contact=No
     sol = equilibrium.solve(valve.problem, params, jnp.asarray(x0), solver,
                             throw=throw and not check_state, nbrs=nbrs)
     if check_state and sol.converged:
-        from .checks import triangle_checks
-        x = np.asarray(sol.x, np.float64)
-        code = None
-        if np.all(np.isfinite(x)) and len(leaflet_crossings(valve, x)):
-            code = RESULTS.leaflets_cross
-        elif not triangle_checks(valve.ref, valve.triangles, x).ok:
-            code = RESULTS.inverted_triangles
+        code = state_failure(valve, sol.x)
         if code is not None:
             sol = dataclasses.replace(sol, result=jnp.asarray(code,
                                                               jnp.asarray(sol.result).dtype))
@@ -156,6 +151,22 @@ def close(valve: Valve, material, pressure_mmhg=80.0, *, solver=None, contact=No
         raise ConvergenceError(f"valve closure at {pressure_mmhg:g} mmHg did not converge: "
                                f"{sol.describe()}", sol)
     return sol
+
+
+def state_failure(valve: Valve, x):
+    """Why the state x (N, 3) mm, which a solver calls converged, is still not a valid
+    closed valve: `RESULTS.leaflets_cross` (an exact triangle-triangle test finds leaflets
+    crossing), `RESULTS.inverted_triangles` (a triangle collapsed or turned over,
+    `jaxvalve.checks`), `RESULTS.nonfinite`, or None when it passes."""
+    from .checks import triangle_checks
+    x = np.asarray(x, np.float64)
+    if not np.all(np.isfinite(x)):
+        return RESULTS.nonfinite
+    if len(leaflet_crossings(valve, x)):
+        return RESULTS.leaflets_cross
+    if not triangle_checks(valve.ref, valve.triangles, x).ok:
+        return RESULTS.inverted_triangles
+    return None
 
 
 def leaflet_crossings(valve: Valve, x) -> np.ndarray:

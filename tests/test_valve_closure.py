@@ -50,6 +50,28 @@ def test_no_leaflets_cross(closed):
     assert len(V.leaflet_crossings(closed.valve, closed.x)) == 0
 
 
+def test_state_check_rejects_crossed_leaflets_and_folded_triangles(closed):
+    """`state_failure`, which `simulate` applies to every state a solver accepts, passes
+    the closed valve and catches leaflets pushed 1.5 mm through one another, a leaflet
+    node pulled through its neighbours (a fold) and a NaN."""
+    from jaxvalve.solvers import RESULTS
+    from jaxvalve.stress import penetrated_start
+    v = closed.valve
+    assert V.state_failure(v, closed.x) is None and V.state_failure(v, closed.x_he) is None
+    assert V.state_failure(v, penetrated_start(v, closed.x, 1.5)) == RESULTS.leaflets_cross
+    x = np.array(closed.x)
+    sl = v.leaflet_slice(0)
+    free = np.flatnonzero(~np.asarray(v.problem.fixed)[sl])
+    i = sl.start + free[len(free) // 2]                 # an interior node of leaflet 0
+    nb = np.unique(v.triangles[np.any(v.triangles == i, axis=1)])
+    far = nb[np.argmax(np.linalg.norm(x[nb] - x[i], axis=1))]
+    x[i] = x[far] + 2.0 * (x[far] - x[i])               # through its star
+    assert V.state_failure(v, x) in (RESULTS.inverted_triangles, RESULTS.leaflets_cross)
+    x[i, 0] = np.nan
+    assert V.state_failure(v, x) == RESULTS.nonfinite
+    assert all(r.result == "successful" for r in closed.solves)
+
+
 def test_closed_valve_is_threefold_symmetric(closed):
     """The benchmark root and the loads are symmetric under 120-degree turns about the
     axis, and so is the closed valve: leaflet i+1 is leaflet i turned by 120 degrees."""
