@@ -21,11 +21,9 @@ import json
 import time
 
 import jax
-import numpy as np
 
 import jaxvalve
 from jaxvalve import valve as V
-from jaxvalve.leaflet_mesh import mesh_leaflet
 from jaxvalve.scene import Scene
 from jaxvalve.simulation import compile_timer, simulate
 

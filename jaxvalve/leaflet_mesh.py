@@ -153,7 +153,6 @@ def mesh_quality(points, triangles) -> dict:
     p = np.asarray(points, float)
     t = np.asarray(triangles)
     v = [p[t[:, (i + 1) % 3]] - p[t[:, i]] for i in range(3)]
-    lengths = np.stack([np.linalg.norm(x, axis=1) for x in v], axis=1)
     angles = []
     for i in range(3):
         u, w = -v[(i + 2) % 3], v[i]

@@ -10,7 +10,7 @@ from jaxvalve.errors import NeighbourListOverflow, ParameterError
 from jaxvalve.contact.neighbours import ROW_WIDTH
 from jaxvalve.contact import (
     PaperContact, SmoothContact, brute_force_pairs, build_neighbours,
-    build_neighbours_checked, check_overflow, closest_point_barycentric, default_capacity,
+    build_neighbours_checked, check_overflow, default_capacity,
     needs_rebuild, node_areas, point_triangle_distance, point_triangle_distance_np,
     signed_plane_distance, update, vicinity_threshold,
 )

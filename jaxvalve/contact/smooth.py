@@ -71,7 +71,7 @@ def pair_distances(x, triangles, nbrs: NeighbourList, signed: bool = False):
     """Node-triangle distances (capacity,) in mm for the rows of ``nbrs.pairs``; padding
     rows get +inf.  With ``signed``, also the side (capacity,): -1 where the node lies over
     the triangle's face on its -n side (n = (b - a) x (c - a)), else +1."""
-    n, m = x.shape[0], triangles.shape[0]
+    n = x.shape[0]
     valid = nbrs.slot_valid
     node = jnp.clip(nbrs.group_node[nbrs.row_group], 0, n - 1)[:, None]
     t = triangles[jnp.where(valid, nbrs.cand, 0)]

@@ -13,7 +13,6 @@ import jax
 import jax.numpy as jnp
 
 from .base import RESULTS, check_state, relative_residual
-from .fire import FIRE
 from .predictor import BulgePredictor
 
 
