@@ -26,6 +26,8 @@ import math
 
 import numpy as np
 
+from .mesh import cauchy_green_np
+
 __all__ = ["CheckReport", "triangle_checks", "inverted_triangles", "interior_edges",
            "gent_invariant", "crossing_depth"]
 
@@ -80,20 +82,9 @@ def interior_edges(triangles):
     return np.stack([owner[:-1][same], owner[1:][same]], axis=1)
 
 
-def _cauchy_green(ref, triangles, x):
-    ref = np.asarray(ref, np.float64)
-    x = np.asarray(x, np.float64)
-    tri = np.asarray(triangles)
-    X, Y = ref[tri], x[tri]
-    Dm = np.stack([X[:, 1] - X[:, 0], X[:, 2] - X[:, 0]], axis=-1)     # (M, 2, 2)
-    Ds = np.stack([Y[:, 1] - Y[:, 0], Y[:, 2] - Y[:, 0]], axis=-1)     # (M, 3, 2)
-    F = Ds @ np.linalg.inv(Dm)
-    return np.swapaxes(F, -1, -2) @ F
-
-
 def gent_invariant(ref, triangles, x):
     """I1 + 1/I2 - 3 per triangle (M,): the Gent model stays admissible while it is < Jm."""
-    C = _cauchy_green(ref, triangles, x)
+    C = cauchy_green_np(x, triangles, ref)
     tr = C[:, 0, 0] + C[:, 1, 1]
     det = C[:, 0, 0] * C[:, 1, 1] - C[:, 0, 1] * C[:, 1, 0]
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -110,7 +101,7 @@ def triangle_checks(ref, triangles, x, *, j_min: float = J_MIN,
     if not np.all(np.isfinite(x)):
         return CheckReport(math.nan, math.nan, math.nan, math.nan, empty,
                            np.zeros((0, 2), int), math.nan, False)
-    C = _cauchy_green(ref, tri, x)
+    C = cauchy_green_np(x, tri, ref)
     tr = C[:, 0, 0] + C[:, 1, 1]
     det = np.maximum(C[:, 0, 0] * C[:, 1, 1] - C[:, 0, 1] * C[:, 1, 0], 0.0)
     J = np.sqrt(det)

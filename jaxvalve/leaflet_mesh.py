@@ -17,6 +17,7 @@ import math
 import numpy as np
 
 from .errors import ParameterError
+from .mesh import signed_areas_np, triangle_angles
 from .template import Template, free_point, sutured_point
 
 __all__ = ["LeafletMesh", "mesh_leaflet", "mesh_quality"]
@@ -136,15 +137,10 @@ def _smooth(p, tri, n_boundary, sweeps):
         np.add.at(s, e[:, 1], p[e[:, 0]])
         q = p.copy()
         q[n_boundary:] = s[n_boundary:] / deg[n_boundary:, None]
-        if np.min(_signed_areas(q, tri)) <= 0:
+        if np.min(signed_areas_np(q, tri)) <= 0:
             break
         p = q
     return p
-
-
-def _signed_areas(p, tri):
-    e1, e2 = p[tri[:, 1]] - p[tri[:, 0]], p[tri[:, 2]] - p[tri[:, 0]]
-    return 0.5 * (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
 
 
 def mesh_quality(points, triangles) -> dict:
@@ -152,13 +148,7 @@ def mesh_quality(points, triangles) -> dict:
     (max/min and coefficient of variation), triangle and node counts."""
     p = np.asarray(points, float)
     t = np.asarray(triangles)
-    v = [p[t[:, (i + 1) % 3]] - p[t[:, i]] for i in range(3)]
-    angles = []
-    for i in range(3):
-        u, w = -v[(i + 2) % 3], v[i]
-        c = np.sum(u * w, 1) / (np.linalg.norm(u, axis=1) * np.linalg.norm(w, axis=1))
-        angles.append(np.degrees(np.arccos(np.clip(c, -1, 1))))
-    ang = np.stack(angles, 1)
+    ang = triangle_angles(p, t)
     e = np.unique(np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), 1), axis=0)
     el = np.linalg.norm(p[e[:, 1]] - p[e[:, 0]], axis=1)
     return dict(n_triangles=int(len(t)), n_nodes=int(len(p)), min_angle=float(ang.min()),

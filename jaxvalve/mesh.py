@@ -86,6 +86,31 @@ def signed_areas_np(ref, tri):
     return 0.5 * np.linalg.norm(np.cross(a, b), axis=1)
 
 
+def cauchy_green_np(x, triangles, ref):
+    """Right Cauchy-Green tensors C = F^T F (M, 2, 2) of the affine maps from the template
+    triangles ``ref`` (N, 2) mm to ``x`` (N, 2|3) mm (NumPy, float64)."""
+    x = np.asarray(x, np.float64)
+    ref = np.asarray(ref, np.float64)
+    t = np.asarray(triangles)
+    Dm = np.stack([ref[t[:, 1]] - ref[t[:, 0]], ref[t[:, 2]] - ref[t[:, 0]]], axis=-1)
+    Ds = np.stack([x[t[:, 1]] - x[t[:, 0]], x[t[:, 2]] - x[t[:, 0]]], axis=-1)
+    F = Ds @ np.linalg.inv(Dm)
+    return np.swapaxes(F, -1, -2) @ F
+
+
+def triangle_angles(points, triangles):
+    """Interior angles (M, 3) in degrees, angle k at vertex k."""
+    p = np.asarray(points, float)
+    t = np.asarray(triangles)
+    out = []
+    for k in range(3):
+        u = p[t[:, (k + 1) % 3]] - p[t[:, k]]
+        w = p[t[:, (k + 2) % 3]] - p[t[:, k]]
+        c = np.sum(u * w, 1) / (np.linalg.norm(u, axis=1) * np.linalg.norm(w, axis=1))
+        out.append(np.degrees(np.arccos(np.clip(c, -1, 1))))
+    return np.stack(out, 1)
+
+
 def unique_edges(triangles):
     """Undirected edges (E, 2) int32, sorted, and the map (M, 3) from triangle edge k
     (opposite vertex k, i.e. vertices k+1, k+2) to its row in the edge list."""

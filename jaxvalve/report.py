@@ -13,6 +13,7 @@ import numpy as np
 
 from .errors import RootFileError
 from .jsonable import plain
+from .mesh import cauchy_green_np, signed_areas_np
 
 __all__ = ["metrics_json", "write_outputs", "principal_stretches", "nodal_average",
            "nodal_gap", "UNITS"]
@@ -65,14 +66,7 @@ def principal_stretches(x, triangles, ref) -> np.ndarray:
     """Principal in-plane stretches (M, 2), descending, of each triangle: sqrt(eig(C)),
     C = F^T F, F (3, 2) the affine map from the template triangle ``ref`` (N, 2) mm to
     ``x`` (N, 3) or (N, 2) mm.  Equal to 1 in the template (and any rigid) state."""
-    x = np.asarray(x, dtype=np.float64)
-    ref = np.asarray(ref, dtype=np.float64)
-    t = np.asarray(triangles)
-    Dm = np.stack([ref[t[:, 1]] - ref[t[:, 0]], ref[t[:, 2]] - ref[t[:, 0]]], axis=-1)
-    Ds = np.stack([x[t[:, 1]] - x[t[:, 0]], x[t[:, 2]] - x[t[:, 0]]], axis=-1)
-    F = Ds @ np.linalg.inv(Dm)
-    C = np.swapaxes(F, -1, -2) @ F
-    ev = np.linalg.eigvalsh(C)                                 # ascending
+    ev = np.linalg.eigvalsh(cauchy_green_np(x, triangles, ref))                                 # ascending
     return np.sqrt(np.clip(ev, 0.0, None))[:, ::-1]
 
 
@@ -103,11 +97,6 @@ def nodal_gap(metrics, x, triangles):
     return np.minimum(np.min(metrics.gap, axis=1), cutoff), float(cutoff)
 
 
-def _reference_areas(ref, tri):
-    e1, e2 = ref[tri[:, 1]] - ref[tri[:, 0]], ref[tri[:, 2]] - ref[tri[:, 0]]
-    return 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
-
-
 def leaflet_data(result, i):
     """(points (n, 3), triangles (m, 3), point_data, cell_data) of leaflet i, closed."""
     valve, m = result.valve, result.metrics
@@ -121,7 +110,7 @@ def leaflet_data(result, i):
         "displacement": pts - np.asarray(valve.x_start)[sl],
         "gap": gap[sl],
         "zone": (gap[sl] < m.g_c).astype(np.uint8),
-        "principal_stretches": nodal_average(lam, tri, len(pts), _reference_areas(tpl, tri)),
+        "principal_stretches": nodal_average(lam, tri, len(pts), np.abs(signed_areas_np(tpl, tri))),
         "template": tpl,
     }
     return pts, tri, point_data, {"principal_stretches": lam}

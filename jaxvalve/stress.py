@@ -43,6 +43,7 @@ from . import valve as V
 from .checks import crossing_depth, gent_invariant, triangle_checks
 from .errors import ConvergenceError, JaxvalveError
 from .leaflet_mesh import LeafletMesh, mesh_leaflet
+from .mesh import signed_areas_np, triangle_angles
 from .scene import MODELS, PRECISIONS, Scene
 from .solvers import RESULTS
 from .template import PAPER_TEMPLATES, Template
@@ -104,22 +105,9 @@ def _interior(lmesh: LeafletMesh):
     return np.flatnonzero(~boundary_nodes(lmesh.triangles))
 
 
-def _areas(p, tri):
-    a, b, c = p[tri[:, 0]], p[tri[:, 1]], p[tri[:, 2]]
-    return 0.5 * ((b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1])
-                  - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0]))
-
-
 def min_angles(points, triangles) -> np.ndarray:
     """Smallest angle (degrees) of each triangle (M,)."""
-    P = np.asarray(points)[np.asarray(triangles)]
-    out = []
-    for k in range(3):
-        u = P[:, (k + 1) % 3] - P[:, k]
-        v = P[:, (k + 2) % 3] - P[:, k]
-        c = np.sum(u * v, -1) / (np.linalg.norm(u, axis=-1) * np.linalg.norm(v, axis=-1))
-        out.append(np.degrees(np.arccos(np.clip(c, -1, 1))))
-    return np.min(out, axis=0)
+    return triangle_angles(points, triangles).min(axis=1)
 
 
 def perturbed_mesh(lmesh: LeafletMesh, fraction: float = 0.3, seed: int = 0) -> LeafletMesh:
@@ -136,7 +124,7 @@ def perturbed_mesh(lmesh: LeafletMesh, fraction: float = 0.3, seed: int = 0) -> 
     d[inner] = np.column_stack([r * np.cos(th), r * np.sin(th)])
     for _ in range(30):
         p = p0 + d
-        bad = _areas(p, tri) <= 0.05 * _areas(p0, tri)
+        bad = signed_areas_np(p, tri) <= 0.05 * signed_areas_np(p0, tri)
         if not bad.any():
             return dataclasses.replace(lmesh, points=p)
         d[np.unique(tri[bad])] *= 0.5
@@ -165,7 +153,7 @@ def poor_mesh(lmesh: LeafletMesh, n_bad: int = 4, target_deg: float = 3.0,
         for s in np.linspace(0.5, 0.01, 50):
             q = p.copy()
             q[v] = m + s * (p[v] - m)
-            if np.any(_areas(q, tri[star]) <= 0):
+            if np.any(signed_areas_np(q, tri[star]) <= 0):
                 break
             if min_angles(q, tri[star[:1]])[0] <= target_deg:
                 p = q

@@ -25,7 +25,8 @@ import numpy as np
 import scipy.sparse.linalg as spla
 
 from .errors import MeshError, ParameterError
-from .leaflet_mesh import LeafletMesh, _edge_counts, _signed_areas, mesh_quality
+from .leaflet_mesh import LeafletMesh, _edge_counts, mesh_quality
+from .mesh import signed_areas_np
 from .placement import cot_laplacian
 from .template import Template, corners
 
@@ -97,7 +98,7 @@ class TemplateMap:
         inverted triangle: time to mesh the new template afresh (outside the gradient)."""
         p = np.asarray(self.points(float(r), float(a), float(b), float(alpha)))
         t = self.base.triangles
-        if np.min(_signed_areas(p, t)) <= 0:
+        if np.min(signed_areas_np(p, t)) <= 0:
             return True
         return mesh_quality(p, t)["min_angle"] < min_angle
 
