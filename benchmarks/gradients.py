@@ -1,7 +1,8 @@
 """Adjoint gradients of the smooth coaptation metrics against central differences, on the
 benchmark valve at the clinical load.
 
-    python benchmarks/gradients.py [--h 1.5] [--rtol 1e-9] [--step 1e-3] [--max-steps 30000]
+    python benchmarks/gradients.py [--h 1.5] [--E 1] [--rtol 1e-10] [--step 1e-3]
+        [--max-steps 200000] [--point R A B ...]
 
 At several templates (`POINTS`, or ``--point R A B`` repeated), closes the valve from the
 placement at 3 mmHg (h_E) and 80 mmHg (h_CC, h_avr, NCCA, h, h_c), takes d metric / d(r, a, b, E) by the LU adjoint (`Evaluator.sensitivities`), and
@@ -35,13 +36,14 @@ POINTS = {"benchmark start": (12.0, 7.1, 15.0), "larger": (12.5, 7.5, 15.5),
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--h", type=float, default=1.5)
-    ap.add_argument("--rtol", type=float, default=1e-9)
-    ap.add_argument("--max-steps", type=int, default=30_000)
+    ap.add_argument("--E", type=float, default=1.0, help="StVK modulus (MPa)")
+    ap.add_argument("--rtol", type=float, default=1e-10)
+    ap.add_argument("--max-steps", type=int, default=200_000)
     ap.add_argument("--step", type=float, default=1e-3)
     ap.add_argument("--point", type=float, nargs=3, action="append", metavar=("R", "A", "B"),
                     help="a template (mm) to check instead of the default points; repeat")
     args = ap.parse_args(argv)
-    scene = Scene(h=args.h, rtol=args.rtol, max_steps=args.max_steps)
+    scene = Scene(h=args.h, E=args.E, rtol=args.rtol, max_steps=args.max_steps)
     # every metric of both loads, so that both closures run
     obj = Objective(targets=(Target("h_E", lower=0.0), Target("h", lower=0.0)))
     ev = Evaluator(scene, obj)

@@ -22,7 +22,7 @@ does not skip (written here, not in the library):
 * other leaflets:    the Verlet list of (node, other leaflet) pairs, against every
                      (node, triangle) pair within the cutoff including the node's own
                      leaflet: broad phase and nearest-triangle pass;
-* cutoff region:     the Verlet candidates (cutoff g0 + skin = 1.2 mm), against every pair
+* cutoff region:     the Verlet candidates (cutoff g0 + skin, `Valve.skin`), against every pair
                      of different leaflets (cutoff past the valve's size; only where a
                      leaflet has <= MAX_GROUP triangles), soft-min contact E+grad from its
                      definition (`smooth.soft_energy_reference`) and broad phase;
@@ -35,12 +35,15 @@ Each row says what is timed, both times (ms per call), their ratio, both compile
 (s), and the largest relative difference of the values (energy and forces) where the two
 variants compute the same thing.
 
-Broad phase scaling: the Verlet build (`contact.build_neighbours`, cutoff 1.2 mm,
-capacities as `build_neighbours_checked` sets them) on the benchmark valve at each
---scaling-h, in two states: the closed state of the finest --h interpolated onto that
-mesh through the template coordinates (the coaptation zone as in a closed valve), and the
-placement (the leaflets apart).  The exponent b of t ~ M^b (M = triangles) is fitted by
-least squares on log-log.
+Broad phase scaling: the Verlet build (`contact.build_neighbours`, capacities as
+`build_neighbours_checked` sets them) on the benchmark valve at each --scaling-h, with the
+solve's cutoff g0 + skin, skin = `Valve.skin` (the median edge, at most 1 mm), in two
+states: the closed state of the finest --h interpolated onto that mesh through the
+template coordinates (the coaptation zone as in a closed valve), and the placement (the
+leaflets apart); and, for comparison, the closed state with the fixed 1 mm skin the solve
+used before (cutoff 1.2 mm).  The exponent b of t ~ M^b (M = triangles) is fitted by least
+squares on log-log, over all sizes and over those with h <= 1 mm (where the skin follows
+the mesh).
 
 --cache DIR keeps the closed states (closed_h*.npy) between runs.
 """
@@ -61,7 +64,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from contact import CUTOFF  # noqa: E402  (benchmarks/contact.py: gap + skin, mm)
 
 GAP = 0.2  # mm: SmoothContact().gap
-STATES = ("closed", "placed", "closed, skin = h")
+STATES = ("closed", "placed", "closed, 1 mm skin")
 
 import jaxvalve  # noqa: E402
 from jaxvalve import assembly, equilibrium  # noqa: E402
@@ -172,7 +175,7 @@ class Rows:
 
 
 def all_pairs_list(x, tri, body):
-    """(node, triangle) candidates within CUTOFF of every leaflet INCLUDING the node's own:
+    """(node, triangle) candidates within the cutoff of every leaflet INCLUDING the node's own:
     the triangles are given copies of the nodes (body 3), so each node of bodies 0-2 has
     one group holding every triangle in range.  Returns (x_ext, tri_ext, body_ext)."""
     n = x.shape[0]
@@ -192,7 +195,8 @@ def skips_at(h, rows, repeat, cache):
     base_params = as_f64(valve.params(scene.material(), scene.pressure, law,
                                       bending=bend))
     ref = assembly.prepare(prob, base_params)
-    pairs = equilibrium.init_pairs(law, prob, x)
+    pairs = equilibrium.init_pairs(law, prob, x, valve.skin)
+    cut = GAP + valve.skin    # the solve's broad-phase cutoff (mm)
     T = dict(repeat=repeat)
     print(f"-- h = {h} mm: {len(tri)} triangles, {prob.n_nodes} nodes; Verlet candidates "
           f"{int(pairs.base.n_pairs)}, pruned pairs {int(pairs.n)}", flush=True)
@@ -259,9 +263,9 @@ def skips_at(h, rows, repeat, cache):
     base = pairs.base
     x_np, tri_np = np.asarray(x), np.asarray(tri)
     xe, te, be = all_pairs_list(x_np, tri_np, body)
-    self_nb = build_neighbours_checked(xe, te, be, CUTOFF)
+    self_nb = build_neighbours_checked(xe, te, be, cut)
 
-    def build(y, t, b, nb, cutoff=CUTOFF):
+    def build(y, t, b, nb, cutoff=cut):
         return build_neighbours(y, t, b, cutoff, nb.capacity, nb.scan_capacity,
                                 n_bodies=nb.n_bodies, grid_size=nb.grid_size)
 
@@ -335,8 +339,9 @@ def scaling(hs, v_closed, x_closed, repeat):
         tri, body = jnp.asarray(v.triangles), jnp.asarray(v.body)
         row = dict(h=h, M=len(v.triangles), N=v.problem.n_nodes)
         xc = jnp.asarray(interpolate_state(v_closed, x_closed, v), jnp.float64)
-        for state, x, cutoff in (("closed", xc, CUTOFF), ("placed", v.x_placed, CUTOFF),
-                                 ("closed, skin = h", xc, GAP + h)):
+        row["skin"] = v.skin
+        for state, x, cutoff in (("closed", xc, GAP + v.skin), ("placed", v.x_placed, GAP + v.skin),
+                                 ("closed, 1 mm skin", xc, CUTOFF)):
             x = jnp.asarray(x, jnp.float64)
             nb = build_neighbours_checked(x, tri, body, cutoff)
             c, ms, _ = timed(lambda y: build_neighbours(
@@ -347,11 +352,18 @@ def scaling(hs, v_closed, x_closed, repeat):
         print(f"   h={h:4g}: {row['M']:6d} triangles, " + ", ".join(
             f"{s} {row[s][0]:.3f} ms ({row[s][1]} pairs, {row[s][3]} scan slots)"
             for s in STATES), flush=True)
+    return rows, exponents(rows), exponents([r for r in rows if r["h"] <= 1.0])
+
+
+def exponents(rows):
+    """{state: (b of t ~ M^b, b of pairs ~ M^b)} by least squares on log-log (NaN for fewer
+    than 3 sizes)."""
+    if len(rows) < 3:
+        return {s: (float("nan"), float("nan")) for s in STATES}
     logM = np.log([r["M"] for r in rows])
-    fit = {s: float(np.polyfit(logM, np.log([r[s][0] for r in rows]), 1)[0]) for s in STATES}
-    fit_pairs = {s: float(np.polyfit(logM, np.log([max(r[s][1], 1) for r in rows]), 1)[0])
-                 for s in STATES}
-    return rows, fit, fit_pairs
+    return {s: (float(np.polyfit(logM, np.log([r[s][0] for r in rows]), 1)[0]),
+                float(np.polyfit(logM, np.log([max(r[s][1], 1) for r in rows]), 1)[0]))
+            for s in STATES}
 
 
 # ------------------------------------------------------------------------------ main
@@ -383,18 +395,20 @@ def main(argv=None):
 
     h_ref = min(hs)
     v_ref, x_ref = closed_state(Scene(h=h_ref), a.cache)
-    print(f"\nbroad phase (Verlet build, cutoff {CUTOFF} mm) against mesh size:")
-    srows, fit, fit_pairs = scaling(shs, v_ref, x_ref, a.repeat)
+    print("\nbroad phase (Verlet build) against mesh size:")
+    srows, fit, fit_fine = scaling(shs, v_ref, x_ref, a.repeat)
     sc = [f"broad phase: Verlet build, median ms; closed = the h = {h_ref:g} mm closed "
-          "state interpolated onto each mesh, placed = the placement; cutoff "
-          f"{CUTOFF} mm (g0 + skin, the solve's), and g0 + h (a skin equal to the mesh size)",
-          f"{'h mm':>5s} {'tris/leaf':>9s} {'tris':>6s} | "
-          + " | ".join(f"{s:>16s} {'pairs':>7s} {'scan':>8s}" for s in STATES)]
+          "state interpolated onto each mesh, placed = the placement, both with the solve's "
+          f"cutoff g0 + skin (skin = Valve.skin: median edge, at most 1 mm); closed, 1 mm "
+          f"skin = the fixed cutoff {CUTOFF} mm used before",
+          f"{'h mm':>5s} {'skin':>5s} {'tris/leaf':>9s} {'tris':>6s} | "
+          + " | ".join(f"{s:>17s} {'pairs':>7s} {'scan':>8s}" for s in STATES)]
     for r in srows:
-        sc.append(f"{r['h']:5g} {r['M'] // 3:9d} {r['M']:6d} | " + " | ".join(
-            f"{r[s][0]:13.3f} ms {r[s][1]:7d} {r[s][3]:8d}" for s in STATES))
-    sc.append("fitted exponent b of t ~ M^b: " + ", ".join(
-        f"{s} {fit[s]:.2f} (pairs M^{fit_pairs[s]:.2f})" for s in STATES))
+        sc.append(f"{r['h']:5g} {r['skin']:5.2f} {r['M'] // 3:9d} {r['M']:6d} | " + " | ".join(
+            f"{r[s][0]:14.3f} ms {r[s][1]:7d} {r[s][3]:8d}" for s in STATES))
+    for label, f in (("all sizes", fit), ("h <= 1 mm", fit_fine)):
+        sc.append(f"fitted exponent b of t ~ M^b, {label}: " + ", ".join(
+            f"{s} {f[s][0]:.2f} (pairs M^{f[s][1]:.2f})" for s in STATES))
     r0, r1 = srows[-2], srows[-1]
     sc.append("between the two finest meshes: " + ", ".join(
         f"{s} {np.log(r1[s][0] / r0[s][0]) / np.log(r1['M'] / r0['M']):.2f}" for s in STATES))

@@ -47,7 +47,7 @@ from . import contact as _contact
 from .batching import branches
 from .contact.neighbours import DEFAULT_SCAN_RATIO, MAX_GROUP
 from .contact.soft_pairs import SoftPairs, stale_soft_pairs
-from .equilibrium import DEFAULT_SKIN, _make_args, contact_cutoff, stale_pairs, update_pairs
+from .equilibrium import _make_args, contact_cutoff, stale_pairs, update_pairs
 from .errors import ConvergenceError, ParameterError
 from .materials import Material
 from .problem import mmhg, validate_params
@@ -466,7 +466,7 @@ def simulate_batch(scene: Scene | None = None, materials=None, *, valve=None,
         f"{scene.pressure:g} mmHg in one batch ({scene.solver} solver, {scene.contact} "
         "contact)")
     stages, compile_s, wall_s, retries = _run_batch(members, stacked, valve, base, pressures,
-                                                    solver, DEFAULT_SKIN, loop, say)
+                                                    solver, valve.skin, loop, say)
     solve_s = max(wall_s - compile_s, 0.0)
     n_ok = int(sum(np.all([st["result"] == RESULTS.successful for st in stages], axis=0)))
     say(f"  {n_ok}/{B} converged; {solve_s:.2f} s (+{compile_s:.1f} s compile), "

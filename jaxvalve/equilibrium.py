@@ -28,6 +28,20 @@ from . import contact as _contact
 DEFAULT_SKIN = 1.0  # mm: pair lists are rebuilt once a node has moved skin / 2
 
 
+def mesh_skin(triangles, ref) -> float:
+    """Verlet skin (mm) for a mesh: its median edge length in the reference ``ref`` (N, 2|3)
+    mm, rounded to 0.01 mm and at most `DEFAULT_SKIN`.  With the skin following the mesh
+    size, a node's candidates (within g0 + skin) stay nearly as many triangles as the mesh
+    is refined (they grow only through the fixed gap g0), so the broad phase is about
+    linear in the triangles M; with a fixed 1 mm skin it grows like M^1.2-1.4
+    (`benchmarks/skips.py`).  Rounded, so that a template change of one
+    mesh does not change this static value (one compiled solve)."""
+    tri = np.asarray(triangles)
+    X = np.asarray(ref, float)
+    e = np.linalg.norm(X[np.roll(tri, -1, axis=1)] - X[tri], axis=-1)
+    return float(min(DEFAULT_SKIN, max(0.01, round(float(np.median(e)), 2))))
+
+
 def contact_cutoff(contact, x, triangles, skin=DEFAULT_SKIN):
     """Broad-phase radius (mm): interaction range of the law plus the skin."""
     if hasattr(contact, "energy"):
@@ -233,7 +247,7 @@ def solve(problem: Problem, params: Params, x0, solver=None, *, throw: bool = Tr
     throw: raise `ConvergenceError` (with the residual) unless the solve converged; with
     throw=False the caller must inspect ``solution.result``.
     nbrs, skin: contact pair list (built here at x0 when None, else brought up to date
-    at x0) and its skin (mm).  A pair list
+    at x0) and its skin (mm; a valve's closures pass `Valve.skin`).  A pair list
     that overflows inside the solve is rebuilt here at a larger capacity and the solve
     is repeated.  Differentiable in reverse
     mode with respect to params and the fixed positions in x0 (implicit adjoint).

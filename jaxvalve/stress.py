@@ -310,7 +310,7 @@ def _stale_pairs(valve, contact, dtype):
     from .equilibrium import contact_cutoff
     prob = valve.problem
     n = prob.n_nodes
-    cutoff = contact_cutoff(contact, None, prob.triangles)
+    cutoff = contact_cutoff(contact, None, prob.triangles, valve.skin)
     base = stale_list(n, prob.triangles, prob.body, cutoff,
                       capacity=PAIR_CAPACITY * default_capacity(n), dtype=dtype)
     if not getattr(contact, "soft_min", False):

@@ -33,10 +33,11 @@ from . import assembly
 from .bending import bending_energy, plate_modulus
 from .contact.geometry import closest_point_soa, point_triangle_distance_soa
 from .contact.smooth import _columns
+from .contact.neighbours import whole_lists
 from .contact.soft_pairs import SoftPairs
 from .errors import ConvergenceError
 
-__all__ = ["assemble", "adjoint_solve", "AdjointReport"]
+__all__ = ["assemble", "adjoint_solve", "residual_vjp", "AdjointReport"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -119,12 +120,15 @@ def _blocks(x, problem, params, nbrs, hinge_nodes, hinge_tris):
     return out
 
 
+def _hinge_args(problem):
+    hn, ht = _local_hinges(problem) if problem.hinges is not None else (None, None)
+    return (None if hn is None else jnp.asarray(hn)), (None if ht is None else jnp.asarray(ht))
+
+
 def assemble(problem, params, x, nbrs=None):
     """The approximate stiffness K (3F x 3F scipy CSC, F free nodes, dofs node-major)."""
-    hn, ht = _local_hinges(problem) if problem.hinges is not None else (None, None)
     parts = jax.device_get(_blocks(jnp.asarray(x), problem, params, nbrs,
-                                   None if hn is None else jnp.asarray(hn),
-                                   None if ht is None else jnp.asarray(ht)))
+                                   *_hinge_args(problem)))
     rows, cols, vals = [], [], []
     for H, nodes in parts:
         dof = (3 * np.asarray(nodes)[:, :, None] + np.arange(3)).reshape(len(H), -1)
@@ -140,10 +144,14 @@ def assemble(problem, params, x, nbrs=None):
 
 
 @jax.jit
-def _vjp_x(x, problem, params, nbrs, v):
-    ref = assembly.prepare(problem, params)
-    R = lambda z: assembly.residual(z, problem, params, ref, nbrs)
-    return jax.vjp(R, x)[1](v)[0]
+def residual_vjp(x, problem, params, nbrs, v):
+    """(v . dR/dx (N, 3), v . dR/dparams (a `Params`)) for the residual R(x, params), v
+    (N, 3).  One compiled program serves the adjoint's K^T products (`adjoint_solve`) and
+    the pullback of an adjoint to the parameters (`optimize.Evaluator`)."""
+    def R(z, p):
+        return assembly.residual(z, problem, p, assembly.prepare(problem, p), nbrs)
+    with whole_lists():
+        return jax.vjp(R, x, params)[1](v)
 
 
 def adjoint_solve(problem, params, x, nbrs, g, *, rtol=1e-10, maxiter=300):
@@ -165,8 +173,8 @@ def adjoint_solve(problem, params, x, nbrs, g, *, rtol=1e-10, maxiter=300):
     def KT(vf):
         v = np.zeros(3 * N)
         v[fdof] = vf
-        return -np.asarray(_vjp_x(x, problem, params, nbrs,
-                                  jnp.asarray(v.reshape(N, 3)))).reshape(-1)[fdof]
+        gx, _ = residual_vjp(x, problem, params, nbrs, jnp.asarray(v.reshape(N, 3)))
+        return -np.asarray(gx).reshape(-1)[fdof]
 
     A = spla.LinearOperator((b.size, b.size), matvec=KT, dtype=float)
     M = spla.LinearOperator((b.size, b.size), matvec=lu.solve, dtype=float)

@@ -67,6 +67,12 @@ class Valve:
     def body(self):
         return np.asarray(self.problem.body)
 
+    @property
+    def skin(self) -> float:
+        """Verlet skin (mm) of the contact pair lists: the leaflet mesh's median edge,
+        at most 1 mm (`equilibrium.mesh_skin`)."""
+        return equilibrium.mesh_skin(self.leaflet.triangles, self.leaflet.points)
+
     def leaflet_slice(self, i):
         n = self.nodes_per_leaflet
         return slice(i * n, (i + 1) * n)
@@ -141,7 +147,7 @@ def close(valve: Valve, material, pressure_mmhg=80.0, *, solver=None, contact=No
     params = valve.params(material, pressure_mmhg, contact, thickness, fibre_angle, bending)
     x0 = valve.x_start if x0 is None else x0
     sol = equilibrium.solve(valve.problem, params, jnp.asarray(x0), solver,
-                            throw=throw and not check_state, nbrs=nbrs)
+                            throw=throw and not check_state, nbrs=nbrs, skin=valve.skin)
     if check_state and sol.converged:
         code = state_failure(valve, sol.x)
         if code is not None:

@@ -114,7 +114,8 @@ class Evaluator:
         self._direct_jit = jax.jit(jax.value_and_grad(
             lambda rab, xs, st, pl, ar: self._terms(rab, xs, st, pl, ar, False),
             argnums=(0, 1), has_aux=True))
-        self._pull_jit = jax.jit(self._pullback, static_argnums=(1, 5))
+        self._placed_jit = jax.jit(self._placed)
+        self._design_pull_jit = jax.jit(self._design_pullback)
         self._metric_jac_jit = jax.jit(jax.jacrev(self._load_metrics, argnums=(0, 2)),
                                        static_argnums=(1,))
         self._dcc_jit = jax.jit(self.d_cc)
@@ -193,7 +194,8 @@ class Evaluator:
             if material is not None:
                 params = params.replace(material=material)
             t0 = time.perf_counter()
-            sol = equilibrium.solve(self.valve.problem, params, x0, self.solver, throw=False)
+            sol = equilibrium.solve(self.valve.problem, params, x0, self.solver, throw=False,
+                                    skin=self.valve.skin)
             x = np.asarray(sol.x)
             ok = sol.converged and bool(np.all(np.isfinite(x)))
             solves.append(dict(load=load, pressure=self.pressure[load], converged=ok,
@@ -256,7 +258,7 @@ class Evaluator:
                 t0 = time.perf_counter()
                 sol = equilibrium.solve(self.valve.problem, params,
                                         self.design.x_fixed(th, x_free=jnp.asarray(seed)),
-                                        self.solver, throw=False)
+                                        self.solver, throw=False, skin=self.valve.skin)
                 x = np.asarray(sol.x)
                 wall = time.perf_counter() - t0
             ok = sol.converged and bool(np.all(np.isfinite(x)))
@@ -304,19 +306,28 @@ class Evaluator:
         terms = self.objective.terms(th, self.scene.alpha, metrics, self.d_cc(th), area_ref)
         return sum(terms.values()), terms
 
-    def _pullback(self, rab, load, x, nbrs, mu, wrt_params=False):
-        """d/d(r, a, b) of <mu, R(x with the template's sutured nodes, params(theta))>; with
-        ``wrt_params`` also d/d(params), a `Params` pytree (material moduli, thickness,
-        pressure, ...; its reference geometry follows the template and gets no cotangent)."""
-        from jaxvalve import assembly
+    def _placed(self, rab, x):
+        """The reference nodes of template (r, a, b) and x with its sutured nodes placed."""
+        th = self.theta(rab)
+        return self.design.ref(th), self.design.x_fixed(th, x_free=x)
 
-        def f(rab, params):
-            th = jnp.concatenate([rab, jnp.asarray([self.scene.alpha], rab.dtype)])
-            params = params.replace(ref=self.design.ref(th))
-            xx = self.design.x_fixed(th, x_free=x)
-            ref = assembly.prepare(self.valve.problem, params)
-            return jnp.sum(mu * assembly.residual(xx, self.valve.problem, params, ref, nbrs))
-        return jax.grad(f, argnums=(0, 1) if wrt_params else 0)(rab, self.base[load])
+    def _design_pullback(self, rab, x, g_ref, g_x):
+        """d/d(r, a, b) (3,) of <g_ref, ref(r, a, b)> + <g_x, x with sutured nodes placed>."""
+        return jax.vjp(lambda q: self._placed(q, x), rab)[1]((g_ref, g_x))[0]
+
+    def pullback(self, rab, load, x, nbrs, mu, wrt_params=False):
+        """d/d(r, a, b) (3,) of <mu, R(x with the template's sutured nodes, params(r, a,
+        b))>; with ``wrt_params`` also its derivative with respect to the `Params` (read its
+        material moduli, thickness, pressure).  The residual's VJP is
+        `tangent.residual_vjp`, the program the adjoint solve already compiled; only the
+        template's part (reference nodes and sutured positions) compiles here."""
+        from jaxvalve.tangent import residual_vjp
+
+        ref, xx = self._placed_jit(rab, x)
+        gx, gp = residual_vjp(xx, self.valve.problem, self.base[load].replace(ref=ref), nbrs,
+                              mu)
+        g = self._design_pull_jit(rab, x, gp.ref, gx)
+        return (g, gp) if wrt_params else g
 
     def _load_metrics(self, rab, load, x, plan):
         """The smooth metrics of one load, (k,) in METRICS order, with the sutured nodes at
@@ -350,7 +361,7 @@ class Evaluator:
             for k, name in enumerate(names):
                 mu, _ = adjoint_solve(self.valve.problem, params, sol.x, sol.nbrs, J_x[k])
                 mu = jnp.asarray(mu)
-                g_rab, gp = self._pull_jit(rab, load, sol.x, sol.nbrs, mu, True)
+                g_rab, gp = self.pullback(rab, load, sol.x, sol.nbrs, mu, True)
                 g = np.asarray(J_rab[k]) + np.asarray(g_rab)
                 d = dict(r=float(g[0]), a=float(g[1]), b=float(g[2]))
                 for f in dataclasses.fields(gp.material):
@@ -391,5 +402,5 @@ class Evaluator:
             params = self.base[load].replace(ref=self.design.ref(th))
             mu, rep = adjoint_solve(self.valve.problem, params, sol.x, sol.nbrs, gx[load])
             reports.append(rep)
-            g = g + np.asarray(self._pull_jit(rab, load, sol.x, sol.nbrs, jnp.asarray(mu)))
+            g = g + np.asarray(self.pullback(rab, load, sol.x, sol.nbrs, jnp.asarray(mu)))
         return float(v), g, {"adjoint": reports}

@@ -28,6 +28,12 @@ def test_help_and_missing_subcommand(capsys):
         main(["--help"])
     assert "membrane" in capsys.readouterr().out
     assert main([]) == 2
+    # every subcommand's help renders (argparse %-formats each help string)
+    for name in ("membrane", "optimize", "simulate", "sweep"):
+        with pytest.raises(SystemExit) as e:
+            main([name, "--help"])
+        assert e.value.code == 0
+        assert f"jaxvalve {name}" in capsys.readouterr().out
 
 
 def test_bad_input_exits_2_with_the_parameter_named_for_every_subcommand(capsys):

@@ -621,3 +621,32 @@ def test_paper_validate():
         PaperContact(k2=-1.0).validate()
     with pytest.raises(ParameterError, match="d_pi"):
         PaperContact(d_pi=float("nan")).validate()
+
+
+def test_mesh_skin_keeps_the_candidates_per_node_fixed_under_refinement():
+    """With the skin equal to the mesh size (`equilibrium.mesh_skin`), the candidate pairs
+    per node of two sheets 0.1 mm apart grow only through the fixed gap g0 = 0.2 mm as the
+    mesh is refined (a broad phase near linear in the triangles); with the fixed 1 mm skin
+    they grow like 1 / h^2."""
+    from jaxvalve.equilibrium import DEFAULT_SKIN, mesh_skin
+
+    gap = 0.2
+    per_node, per_node_fixed, skins = [], [], []
+    for n in (8, 16, 32):                          # h = 2, 1, 0.5 mm on 16 mm sheets
+        x, tri, body = combine(grid_sheet(n, 16.0), grid_sheet(n, 16.0, z=0.1, flip=True))
+        skin = mesh_skin(tri, x)
+        skins.append(skin)
+        counts = []
+        for cutoff in (gap + skin, gap + DEFAULT_SKIN):
+            nb = build_neighbours_checked(jnp.asarray(x), jnp.asarray(tri),
+                                          jnp.asarray(body), cutoff)
+            counts.append(int(nb.n_pairs) / len(x))
+        per_node.append(counts[0])
+        per_node_fixed.append(counts[1])
+    # the median edge (the legs of the right triangles: L / n), capped at 1 mm
+    assert skins == [DEFAULT_SKIN, 1.0, 0.5]
+    grow_fixed = per_node_fixed[2] / per_node_fixed[1]
+    grow = per_node[2] / per_node[1]
+    assert grow_fixed > 2.2     # -> 4 = (1 mm / 0.5 mm)^2 at a fixed cutoff (2.44: edges)
+    # ((g0 + h + R) / h)^2 with R ~ 0.75 h the bounding radius: (1.07 / 1.95 * 2)^2 = 1.2
+    assert grow < 1.35 and grow < 0.6 * grow_fixed                          # 1.25

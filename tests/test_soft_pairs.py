@@ -135,3 +135,33 @@ def test_stale_lists_are_rebuilt_at_the_first_update_exactly(scene):
     assert int(fresh.n) == int(direct.n) > 0
     np.testing.assert_array_equal(fresh.tri, direct.tri)
     np.testing.assert_array_equal(fresh.group, direct.group)
+
+
+def test_whole_lists_give_the_same_energy_forces_and_second_derivatives(scene):
+    """`neighbours.whole_lists` (used to trace the adjoint's programs) evaluates the whole
+    pruned list in one branch instead of a `lax.switch` over prefixes: the energy, forces
+    and a Hessian-vector product are the same, and the program has fewer branches."""
+    from jaxvalve.contact.neighbours import whole_lists
+
+    x, tri, body, area, law, base = scene
+    law = SmoothContact(soft_min=True, one_sided=True)
+    pairs = _build(base, x, tri, law, 8192, MARGIN)
+    v = jnp.asarray(np.random.default_rng(1).standard_normal(x.shape))
+
+    def hvp(x, pairs):
+        f = lambda z: jax.grad(lambda y: law.energy(y, tri, pairs, area))(z)
+        return law.energy(x, tri, pairs, area), f(x), jax.jvp(f, (x,), (v,))[1]
+
+    def whole(x, pairs):
+        with whole_lists():
+            return hvp(x, pairs)
+
+    e0, g0, h0 = jax.jit(hvp)(x, pairs)
+    e1, g1, h1 = jax.jit(whole)(x, pairs)
+    assert float(e0) > 1e-4 and int(pairs.n) < pairs.soft_capacity // 2  # a prefix is used
+    assert abs(float(e1) - float(e0)) <= 1e-13 * float(e0)
+    np.testing.assert_allclose(g1, g0, rtol=0, atol=1e-12 * float(jnp.max(jnp.abs(g0))))
+    np.testing.assert_allclose(h1, h0, rtol=0, atol=1e-12 * float(jnp.max(jnp.abs(h0))))
+    # lax.switch is a `cond` over its branches: the whole-list program has fewer of them
+    n_cond = lambda f: str(jax.make_jaxpr(f)(x, pairs)).count("cond[")
+    assert n_cond(whole) < n_cond(hvp)

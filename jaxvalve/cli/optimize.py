@@ -19,7 +19,7 @@ from pathlib import Path
 from .simulate import add_scene_arguments, make_scene
 
 METRIC_HELP = "METRIC>=X, METRIC<=X, METRIC=X or X<=METRIC<=Y; METRIC one of h_E, h_CC, " \
-              "h_avr, NCCA_pct, h, h_c, area (mm, %, mm^2)"
+              "h_avr, NCCA_pct, h, h_c, area (mm, %%, mm^2)"
 
 
 def add_parser(sub):

@@ -48,8 +48,10 @@ no node has moved more than skin / 2 since the build (`needs_rebuild`, `update`)
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
+import threading
 
 import numpy as np
 import jax
@@ -185,11 +187,31 @@ def _next_pow2(n: int) -> int:
     return 1 << max(0, int(n) - 1).bit_length()
 
 
+_ONE_PREFIX = threading.local()
+
+
+@contextlib.contextmanager
+def whole_lists():
+    """While tracing inside this context, `bucket_sizes` gives the whole list only: one
+    branch instead of a `lax.switch` over prefixes.  For programs run at one state many
+    times, such as the adjoint's products at a closed valve (`jaxvalve.tangent`), where the
+    longest prefix is in use anyway and the other branches only cost compilation."""
+    old = getattr(_ONE_PREFIX, "on", False)
+    _ONE_PREFIX.on = True
+    try:
+        yield
+    finally:
+        _ONE_PREFIX.on = old
+
+
 def bucket_sizes(n: int, smallest: int = 64, most: int = 4, factor: int = 4) -> tuple:
     """Static prefix lengths n, n/factor, n/factor^2, ... (rounded up, >= `smallest`, at
     most `most` of them): work on rows [0, used) is done on the shortest prefix that holds
     them, chosen at run time with `lax.switch` (`bucket_index`), so its cost follows the
-    rows in use rather than the static capacity (within `factor`)."""
+    rows in use rather than the static capacity (within `factor`).  Only n inside
+    `whole_lists`."""
+    if getattr(_ONE_PREFIX, "on", False):
+        return (int(n),)
     out = [int(n)]
     while len(out) < most and -(-out[-1] // factor) >= smallest:
         out.append(-(-out[-1] // factor))
@@ -230,12 +252,13 @@ def _cummax(a):
 def default_capacity(n_nodes: int, pairs_per_node: int = 24) -> int:
     """A starting pair capacity (slots) for a mesh of `n_nodes` nodes.
 
-    A closed valve (3 x 1313 triangles of ~0.87 mm, cutoff = gap + skin = 1.2 mm) has
+    A closed valve (3 x 1313 triangles of ~0.87 mm, cutoff = gap + 1 mm skin = 1.2 mm) has
     ~16 candidate pairs per node on average (60 % of its nodes near another leaflet, ~25
     triangles of it in range), ~19 pair slots per node with the row padding: 24 leaves
     headroom, so a closure does not overflow and restart.  The cost of the contact
     energy and of a rebuild follows the pairs in use, not the capacity, so headroom is
-    cheap.  Rounded up to a multiple of 256.
+    cheap.  (`Valve.skin`, the median edge, gives the smaller cutoff 1.08 mm there.)
+    Rounded up to a multiple of 256.
     """
     cap = max(256, int(pairs_per_node) * int(n_nodes))
     return _round_up(cap, 256)
