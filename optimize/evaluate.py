@@ -8,8 +8,10 @@
   previous evaluation's state with the sutured nodes moved to the new template, then the
   smooth metrics on a `SmoothPlan` built at the new state, and the objective.
 * ``gradient(ev)``: the objective's value and its gradient with respect to (r, a, b).
-  The equilibria enter through `equilibrium.implicit_state`, so the gradient costs one
-  adjoint solve per closure and never re-runs or unrolls the solver.
+  The equilibria enter through the implicit adjoint: one solve K^T mu = df/dx per
+  closure (`tangent.adjoint_solve`; `adjoint="jax"` uses `equilibrium.implicit_state`),
+  pulled back to (r, a, b) by `pullback` (`tangent.residual_vjp`).  It never re-runs or
+  unrolls the solver.
 
 Changing theta changes only traced values: nothing recompiles, unless the mapped mesh
 degrades (an angle below ``min_angle``), when the new template is meshed afresh (a new
