@@ -19,6 +19,7 @@ from .contact.soft_pairs import (SoftPairs, build_soft_pairs, default_soft_capac
                                  stale_soft_pairs)
 from .contact.soft_pairs import refresh as refresh_soft
 from .errors import ConvergenceError, NeighbourListOverflow, ParameterError
+from .mesh import edge_lengths_np
 from .problem import Params, Problem, validate_params
 from .solvers import RESULTS, EquilibriumSystem, FixedPoint, NewtonKrylov, Solution, Stats, iterate
 from .solvers.base import relative_residual
@@ -36,9 +37,7 @@ def mesh_skin(triangles, ref) -> float:
     linear in the triangles M; with a fixed 1 mm skin it grows like M^1.2-1.4
     (`benchmarks/skips.py`).  Rounded, so that a template change of one
     mesh does not change this static value (one compiled solve)."""
-    tri = np.asarray(triangles)
-    X = np.asarray(ref, float)
-    e = np.linalg.norm(X[np.roll(tri, -1, axis=1)] - X[tri], axis=-1)
+    e = edge_lengths_np(ref, triangles)
     return float(min(DEFAULT_SKIN, max(0.01, round(float(np.median(e)), 2))))
 
 

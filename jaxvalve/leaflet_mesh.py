@@ -17,7 +17,7 @@ import math
 import numpy as np
 
 from .errors import ParameterError
-from .mesh import signed_areas_np, triangle_angles
+from .mesh import signed_areas_np, triangle_angles, unique_edges
 from .template import Template, free_point, sutured_point
 
 __all__ = ["LeafletMesh", "mesh_leaflet", "mesh_quality"]
@@ -149,7 +149,7 @@ def mesh_quality(points, triangles) -> dict:
     p = np.asarray(points, float)
     t = np.asarray(triangles)
     ang = triangle_angles(p, t)
-    e = np.unique(np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), 1), axis=0)
+    e, _ = unique_edges(t)
     el = np.linalg.norm(p[e[:, 1]] - p[e[:, 0]], axis=1)
     return dict(n_triangles=int(len(t)), n_nodes=int(len(p)), min_angle=float(ang.min()),
                 mean_min_angle=float(ang.min(1).mean()), max_angle=float(ang.max()),

@@ -111,6 +111,14 @@ def triangle_angles(points, triangles):
     return np.stack(out, 1)
 
 
+def edge_lengths_np(points, triangles):
+    """(M, 3) length (mm) of each triangle's three edges (vertex k to k+1), NumPy; the
+    edges inside the mesh appear once per triangle that has them."""
+    X = np.asarray(points, float)
+    tri = np.asarray(triangles)
+    return np.linalg.norm(X[np.roll(tri, -1, axis=1)] - X[tri], axis=-1)
+
+
 def unique_edges(triangles):
     """Undirected edges (E, 2) int32, sorted, and the map (M, 3) from triangle edge k
     (opposite vertex k, i.e. vertices k+1, k+2) to its row in the edge list."""

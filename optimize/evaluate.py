@@ -116,7 +116,6 @@ class Evaluator:
         self._direct_jit = jax.jit(jax.value_and_grad(
             lambda rab, xs, st, pl, ar: self._terms(rab, xs, st, pl, ar, False),
             argnums=(0, 1), has_aux=True))
-        self._placed_jit = jax.jit(self._placed)
         self._design_pull_jit = jax.jit(self._design_pullback)
         self._metric_jac_jit = jax.jit(jax.jacrev(self._load_metrics, argnums=(0, 2)),
                                        static_argnums=(1,))
@@ -319,15 +318,16 @@ class Evaluator:
 
     def pullback(self, rab, load, x, nbrs, mu, wrt_params=False):
         """d/d(r, a, b) (3,) of <mu, R(x with the template's sutured nodes, params(r, a,
-        b))>; with ``wrt_params`` also its derivative with respect to the `Params` (read its
-        material moduli, thickness, pressure).  The residual's VJP is
-        `tangent.residual_vjp`, the program the adjoint solve already compiled; only the
-        template's part (reference nodes and sutured positions) compiles here."""
+        b))> at a closed state x of template (r, a, b) (its sutured nodes already where the
+        template puts them); with ``wrt_params`` also its derivative with respect to the
+        `Params` (read its material moduli, thickness, pressure).  The residual's VJP is
+        `tangent.residual_vjp`, with the arguments of the adjoint's K^T products, so the
+        program the adjoint solve compiled serves; only the template's part (reference
+        nodes and sutured positions) compiles here."""
         from jaxvalve.tangent import residual_vjp
 
-        ref, xx = self._placed_jit(rab, x)
-        gx, gp = residual_vjp(xx, self.valve.problem, self.base[load].replace(ref=ref), nbrs,
-                              mu)
+        params = self.base[load].replace(ref=self.design.ref(self.theta(rab)))
+        gx, gp = residual_vjp(jnp.asarray(x), self.valve.problem, params, nbrs, mu)
         g = self._design_pull_jit(rab, x, gp.ref, gx)
         return (g, gp) if wrt_params else g
 

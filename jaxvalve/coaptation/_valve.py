@@ -8,6 +8,7 @@ import math
 import numpy as np
 
 from ..errors import MeshError, ParameterError
+from ..mesh import edge_lengths_np
 
 
 @dataclasses.dataclass(frozen=True)
@@ -151,8 +152,7 @@ def topology(triangles, body, free_edge, n_nodes):
 
 def max_edge_length(x, tri):
     """Longest triangle edge (mm)."""
-    xt = x[tri]
-    return float(np.sqrt(np.max(np.sum((xt - np.roll(xt, 1, axis=1)) ** 2, axis=-1))))
+    return float(np.max(edge_lengths_np(x, tri)))
 
 
 def annulus_level(x, sutured, body, axis, origin):
