@@ -170,8 +170,16 @@ def _run(solver, problem, params, x0, nbrs, skin):
     return y, result, stats, args
 
 
-def _adjoint_solve(problem, params, x, nbrs, delta, g, tol=1e-12, maxiter=2000):
-    """mu solving K^T mu = g on free dofs (K = -dR/dx); returns (mu, vjp_fn of R)."""
+#: The JAX adjoint's GMRES: its target (relative residual) and iteration cap, and the
+#: relative residual above which the gradient is refused (`ConvergenceError`).
+ADJOINT_TOL, ADJOINT_MAXITER, ADJOINT_ACCEPT = 1e-12, 2000, 1e-8
+
+
+def _adjoint_solve(problem, params, x, nbrs, delta, g, tol=None, maxiter=None):
+    """mu solving K^T mu = g on free dofs (K = -dR/dx); returns (mu, vjp_fn of R, relative
+    residual ||K^T mu - g|| / ||g|| of the GMRES solution)."""
+    tol = ADJOINT_TOL if tol is None else tol
+    maxiter = ADJOINT_MAXITER if maxiter is None else maxiter
     free = problem.free[:, None]
 
     def R(xx, pp):
@@ -187,7 +195,19 @@ def _adjoint_solve(problem, params, x, nbrs, delta, g, tol=1e-12, maxiter=2000):
     mu, _ = jax.scipy.sparse.linalg.gmres(KT, gf, tol=0.0, atol=tol * jnp.linalg.norm(gf),
                                           restart=60, maxiter=maxiter // 60 + 1, M=M,
                                           solve_method="batched")
-    return mu, vjp
+    ng = jnp.linalg.norm(gf)
+    res = jnp.linalg.norm(KT(mu) - gf) / jnp.where(ng > 0, ng, 1.0)
+    return mu, vjp, res
+
+
+def _raise_adjoint(res):
+    res = float(res)
+    if not res <= ADJOINT_ACCEPT:        # NaN fails too
+        raise ConvergenceError(
+            f"the adjoint solve of the equilibrium gradient did not converge: relative "
+            f"residual {res:.3e} after at most {ADJOINT_MAXITER} GMRES iterations (it must "
+            f"be <= {ADJOINT_ACCEPT:g}); use the LU-preconditioned adjoint "
+            f"(jaxvalve.tangent.adjoint_solve, the optimiser's adjoint='lu') on valves")
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0, 5))
@@ -210,7 +230,11 @@ def _zeros_like(t):
 
 def _adjoint_cotangents(problem, params, y, nb, delta, g):
     """(d/dparams, d/dx0) of <g, x*> at the equilibrium y: one adjoint solve."""
-    mu, vjp = _adjoint_solve(problem, params, y, nb, delta, g)
+    mu, vjp, res = _adjoint_solve(problem, params, y, nb, delta, g)
+    # a gradient from an unconverged adjoint is wrong: raise (inside jit, via a host
+    # callback) and poison it with NaN, never return it silently
+    jax.debug.callback(_raise_adjoint, res)
+    mu = jnp.where(res <= ADJOINT_ACCEPT, mu, jnp.nan)
     gx, gp = vjp(mu)
     # x*[fixed] = x0[fixed] directly, and R depends on x0[fixed] through x*
     return gp, (g + gx) * problem.fixed[:, None]

@@ -28,7 +28,10 @@ class OptimizationResult:
     iteration; reason: why the run stopped; failed: it stopped on an error (a start that
     does not close, a non-finite objective) rather than by a stopping rule; counts:
     {'forward', 'gradient'}; seconds: wall time of the iterations; compile_s: of which
-    JAX compilation; evaluation: the final `Evaluation`; files: paths written."""
+    JAX compilation; evaluation: the final `Evaluation`; files: paths written;
+    check: the final design closed again from the placement (`verify=True`), a dict with
+    'converged', 'value', 'metrics' and 'consistent' (its objective within
+    ``verify_rtol`` of the run's), or None when not checked."""
 
     rab: np.ndarray
     value: float
@@ -40,6 +43,13 @@ class OptimizationResult:
     compile_s: float
     evaluation: Any
     files: tuple = ()
+    check: dict | None = None
+
+    @property
+    def consistent(self) -> bool:
+        """False when the final design closes differently from the placement than along
+        the run (path dependence through contact; see `check`)."""
+        return self.check is None or bool(self.check["consistent"])
 
     @property
     def template(self) -> dict:
@@ -55,6 +65,8 @@ def optimize_template(scene: Scene | None = None, objective: Objective | None = 
                       optimizer: str = "lbfgs", max_iter: int = 30, max_step: float = 1.0,
                       gtol: float = 1e-3, ftol: float = 1e-5, eps: float = 0.1,
                       adjoint: str = "lu", out=None, resume: bool = False,
+                      warm_start: bool | None = None, verify: bool = True,
+                      verify_rtol: float = 1e-3,
                       figures: bool = True, evaluator: Evaluator | None = None,
                       progress: Callable[[str], None] | None = None) -> OptimizationResult:
     """Tune (r, a, b) of ``scene``'s template (its r, a, b are the start; alpha, the root,
@@ -65,7 +77,13 @@ def optimize_template(scene: Scene | None = None, objective: Objective | None = 
     objective and options, else `ParameterError`), giving the same iterates as an
     uninterrupted run.  evaluator: an `Evaluator` for this scene and objective to reuse
     (its compiled functions; e.g. in a notebook).  progress: called with one line per
-    iteration (e.g. ``print``).
+    iteration (e.g. ``print``).  warm_start: start each closure from the last accepted
+    point's closed state (True, about 3x cheaper) or from the placement (False: the
+    objective is then a function of (r, a, b) alone); None: the given evaluator's own
+    setting, else True.  verify: close the final design once more from
+    the placement and compare its objective with the run's (relative ``verify_rtol``): a
+    warm-started run can follow a branch of closed states that the open valve does not
+    reach; `OptimizationResult.check` and ``consistent`` report it.
     """
     from jaxvalve.simulation import compile_timer
 
@@ -73,17 +91,21 @@ def optimize_template(scene: Scene | None = None, objective: Objective | None = 
     objective = Objective() if objective is None else objective
     if objective.area_ref is None:
         objective = dataclasses.replace(objective, area_ref=scene.template().area)
-    if evaluator is not None and (evaluator.scene != scene or evaluator.eps != eps
-                                  or evaluator.objective.targets != objective.targets):
-        raise ParameterError("the evaluator was built for another scene, eps or targets")
+    if evaluator is not None and (
+            evaluator.scene != scene or evaluator.eps != eps
+            or _baked(evaluator.objective) != _baked(objective)):
+        # its compiled gradients hold the objective's weights and targets as constants
+        raise ParameterError("the evaluator was built for another scene, eps or objective")
     for name, v in (("max_iter", max_iter),):
         if not (isinstance(v, int) and v >= 0):
             raise ParameterError(f"{name} must be an integer >= 0; got {v!r}")
     for name, v in (("max_step", max_step), ("gtol", gtol), ("ftol", ftol)):
         if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
             raise ParameterError(f"{name} must be a finite number > 0; got {v!r}")
+    if warm_start is None:
+        warm_start = True if evaluator is None else evaluator.warm_start
     options = dict(max_iter=max_iter, max_step=max_step, gtol=gtol, ftol=ftol, eps=eps,
-                   adjoint=adjoint)
+                   adjoint=adjoint, warm_start=bool(warm_start))
     config = _config(scene, objective, optimizer, options)
     opt = loop.make_optimizer(optimizer)
     say = progress or (lambda s: None)
@@ -103,7 +125,8 @@ def optimize_template(scene: Scene | None = None, objective: Objective | None = 
                                      "options differ from this run's")
             ck = saved["checkpoint"]
             records = saved["trajectory"]["records"]
-            evaluator = _evaluator(evaluator, scene, objective, eps, ck["mesh_at"])
+            evaluator = _evaluator(evaluator, scene, objective, eps, ck["mesh_at"],
+                                   warm_start)
             ev = evaluator.forward(ck["rab"], {l: jnp.asarray(ck[f"x_{l}"])
                                                for l in evaluator.loads})
             if not ev.converged:
@@ -118,7 +141,7 @@ def optimize_template(scene: Scene | None = None, objective: Objective | None = 
                                    float(ck["seconds"]), record=records[-1])
             say(f"resumed at iteration {state.iteration}: objective {state.value:.6g}")
         else:
-            evaluator = _evaluator(evaluator, scene, objective, eps, None)
+            evaluator = _evaluator(evaluator, scene, objective, eps, None, warm_start)
             try:
                 state = loop.init(evaluator, opt, adjoint=adjoint)
             except ConvergenceError as e:                 # reported in the run directory
@@ -147,22 +170,61 @@ def optimize_template(scene: Scene | None = None, objective: Objective | None = 
                 write_checkpoint(out, state, evaluator)
         reason = state.reason or f"reached max_iter = {max_iter}"
         failed = state.failed
+        check = None
+        if verify and not failed:
+            check = _verify(evaluator, state, verify_rtol)
+            say(check["message"])
     seconds = time.perf_counter() - t_start
     say(f"stopped: {reason}")
     files = ()
     if out is not None:
         write_trajectory(out, config, records, dict(done=True, failed=failed, reason=reason,
-                                                    seconds=seconds, compile_s=ct.seconds))
+                                                    seconds=seconds, compile_s=ct.seconds,
+                                                    check=check))
         files = (out / "trajectory.json", out / "trajectory.csv", out / "checkpoint.npz")
         if figures:
             files = files + (plot_run(out, records, scene.alpha, objective.targets),)
     return OptimizationResult(np.asarray(state.rab), state.value, records, reason, failed,
-                              state.counts, seconds, ct.seconds, state.evaluation, files)
+                              state.counts, seconds, ct.seconds, state.evaluation, files,
+                              check)
 
 
-def _evaluator(given, scene, objective, eps, mesh_at):
+def _baked(objective):
+    """The parts of an objective that an `Evaluator`'s compiled gradient holds as
+    constants (area_ref is traced; bounds are applied on the host)."""
+    return (objective.targets, objective.size_weight, objective.margin,
+            objective.constraint_weight)
+
+
+def _verify(evaluator, state, rtol):
+    """The final design closed from the placement, against the run's (warm-started)
+    evaluation: {'converged', 'value', 'metrics', 'consistent', 'message'}."""
+    ev = evaluator.forward(state.rab, None)
+    f_run = state.value
+    if not ev.converged:
+        return dict(converged=False, value=None, metrics={}, consistent=False,
+                    message=f"WARNING: the final design does not close from the placement "
+                            f"({ev.reason}); its metrics hold only along this run's path")
+    gap = abs(ev.value - f_run) / max(abs(f_run), 1e-12)
+    ok = bool(gap <= rtol)
+    dm = {k: ev.metrics[k] - state.evaluation.metrics[k] for k in ev.metrics}
+    worst = max(dm, key=lambda k: abs(dm[k]))
+    msg = (f"check: the final design closed from the placement gives f = {ev.value:.6g} "
+           f"(run: {f_run:.6g}; relative gap {gap:.1e}, largest metric change "
+           f"{worst} {dm[worst]:+.3g})")
+    if not ok:
+        msg = ("WARNING: path-dependent closure: " + msg + f", above {rtol:g}: the run "
+               "followed a branch of closed states the open valve does not reach; rerun "
+               "with closures from the placement (warm_start=False, --cold-closures)")
+    return dict(converged=True, value=float(ev.value),
+                metrics={k: float(v) for k, v in ev.metrics.items()}, consistent=ok,
+                message=msg)
+
+
+def _evaluator(given, scene, objective, eps, mesh_at, warm_start=True):
     if given is None:
-        return Evaluator(scene, objective, eps=eps, mesh_at=mesh_at)
+        return Evaluator(scene, objective, eps=eps, mesh_at=mesh_at, warm_start=warm_start)
+    given.warm_start = bool(warm_start)
     start = np.array([scene.r, scene.a, scene.b]) if mesh_at is None else np.asarray(mesh_at)
     if not np.array_equal(given.mesh_at, start):
         given._build(start)          # the run's mesh (a remesh in an earlier run moved it)

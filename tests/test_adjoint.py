@@ -96,3 +96,27 @@ def test_implicit_state_gives_the_solve_gradient_without_rerunning_the_solver(di
                             throw=False)
     with pytest.raises(ConvergenceError, match="relative residual"):
         equilibrium.implicit_state(prob, params, x0, bad)
+
+
+def test_an_adjoint_that_misses_its_tolerance_raises_instead_of_returning_a_gradient(
+        disk, monkeypatch):
+    """The JAX adjoint's GMRES checks its own residual: on the disk it converges (the
+    gradient is finite), and when the residual it reached is above the acceptance level
+    the gradient is refused with `ConvergenceError` naming the residual, from inside jit
+    too, never returned silently."""
+    from jaxvalve.errors import ConvergenceError
+
+    prob, ref, x0, fixed = disk
+    params = Params(ref=ref, material=StVenantKirchhoff(1.0, 0.45), thickness=0.3,
+                    pressure=mmhg(80.0))
+    sol = equilibrium.solve(prob, params, x0, SOLVER)
+    g = jnp.ones_like(x0)
+    _, _, res = equilibrium._adjoint_solve(prob, params, sol.x, sol.nbrs, 0.0, g)
+    assert float(res) <= equilibrium.ADJOINT_ACCEPT
+    f = lambda p: jnp.sum(equilibrium.implicit_state(prob, p, x0, sol)[:, 2])
+    assert np.isfinite(float(jax.grad(f)(params).thickness))
+    monkeypatch.setattr(equilibrium, "ADJOINT_ACCEPT", 0.0)   # read on the host: no retrace
+    with pytest.raises(Exception, match="adjoint solve .* did not converge: relative residual"):
+        jax.block_until_ready(jax.grad(f)(params))
+    with pytest.raises(Exception, match="adjoint solve .* did not converge"):
+        jax.block_until_ready(jax.jit(jax.grad(f))(params))

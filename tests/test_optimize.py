@@ -156,13 +156,14 @@ def test_metric_sensitivities_to_template_and_modulus_match_central_differences(
 
 def test_loop_descends_writes_its_files_and_resumes_exactly(evaluator, tmp_path):
     sc, obj = evaluator.scene, evaluator.objective
-    kw = dict(evaluator=evaluator, max_step=0.5, figures=False)
+    kw = dict(evaluator=evaluator, max_step=0.5, figures=False, verify=False)
     full = optimize_template(sc, obj, max_iter=2, out=tmp_path / "full", **kw)
     f = [r["objective"] for r in full.records]
     assert len(f) == 3 and f[2] < f[1] < f[0]                  # Armijo: strict decrease
     assert full.counts["gradient"] == 3 and full.counts["forward"] >= 3
     doc = json.loads((tmp_path / "full" / "trajectory.json").read_text())
     assert [r["objective"] for r in doc["records"]] == f
+    assert doc["status"]["check"] is None                      # verify=False
     header = (tmp_path / "full" / "trajectory.csv").read_text().splitlines()[0].split(",")
     for col in ("iteration", "r", "a", "b", "objective", "grad_norm", "m:h", "m:h_E",
                 "f:size", "seconds", "forward", "gradient"):
@@ -175,6 +176,9 @@ def test_loop_descends_writes_its_files_and_resumes_exactly(evaluator, tmp_path)
     with pytest.raises(ParameterError, match="differ"):
         optimize_template(sc.replace(E=2.0), obj, max_iter=2, out=tmp_path / "part",
                           resume=True)
+    with pytest.raises(ParameterError, match="another scene, eps or objective"):
+        optimize_template(sc, Objective(obj.targets, size_weight=0.2,
+                                        area_ref=obj.area_ref), evaluator=evaluator)
 
 
 def test_bad_start_and_non_finite_objective_stop_with_a_reason(evaluator, monkeypatch,
@@ -189,3 +193,73 @@ def test_bad_start_and_non_finite_objective_stop_with_a_reason(evaluator, monkey
         optimize_template(sc, obj, evaluator=evaluator, max_iter=1, out=tmp_path)
     status = json.loads((tmp_path / "trajectory.json").read_text())["status"]
     assert status["failed"] and "not finite" in status["reason"]
+
+
+def test_warm_starts_and_the_final_check_from_the_placement(evaluator, monkeypatch):
+    """warm_start=False closes from the placement whatever the warm start.  Path
+    dependence is reported, never passed off as the design's objective: a closure from
+    the placement that disagrees with the run's, or does not converge, makes the result
+    inconsistent with a message that says so."""
+    import dataclasses
+
+    from optimize import run as run_mod
+
+    sc, obj = evaluator.scene, evaluator.objective
+    real = evaluator.forward
+
+    def other_branch(rab, warm=None, **kw):
+        e = real(rab, warm, **kw)
+        return dataclasses.replace(e, value=e.value * 1.5) if warm is None else e
+
+    # warm_start=False: a closure ignores the warm start and repeats the placement's
+    e0 = evaluator.forward(BASE)
+    steps = lambda e: [x["steps"] for x in e.solves]  # noqa: E731
+    assert max(steps(evaluator.forward(BASE, e0))) < min(steps(e0))   # warm: converged
+    evaluator.warm_start = False
+    try:
+        e1 = evaluator.forward(BASE, e0)
+    finally:
+        evaluator.warm_start = True
+    assert steps(e1) == steps(e0) and e1.value == e0.value
+    # a warm-started step, then the check's closure from the placement: the same state
+    ok = optimize_template(sc, obj, evaluator=evaluator, max_iter=1, max_step=0.2,
+                           figures=False)
+    assert ok.records[-1]["iteration"] == 1 and ok.check["converged"] and ok.consistent
+    assert abs(ok.check["value"] - ok.value) <= 1e-6 * ok.value
+    monkeypatch.setattr(evaluator, "forward", other_branch)
+    res = optimize_template(sc, obj, evaluator=evaluator, max_iter=0, figures=False)
+    assert not res.consistent and res.check["converged"]
+    assert "path-dependent" in res.check["message"]
+    assert res.check["value"] == pytest.approx(1.5 * res.value, rel=1e-9)
+    state = run_mod.loop.init(evaluator, run_mod.loop.make_optimizer())
+
+    class Stalls:            # an evaluator whose closure from the placement stalls
+        def forward(self, rab, warm=None):
+            return dataclasses.replace(state.evaluation, converged=False,
+                                       reason="closure at 80 mmHg: stalled (test)")
+    check = run_mod._verify(Stalls(), state, 1e-3)
+    assert not check["consistent"] and not check["converged"]
+    assert "does not close from the placement" in check["message"]
+
+
+def test_cli_exits_3_when_the_final_check_disagrees(monkeypatch, tmp_path, capsys):
+    """`jaxvalve optimize` passes --cold-closures / --no-check through, prints the run,
+    and exits with 3 when the final design closes differently from the placement."""
+    import optimize
+    from optimize.run import OptimizationResult
+
+    seen = {}
+
+    def fake(scene, objective, **kw):
+        seen.update(kw)
+        rec = dict(iteration=0, objective=1.0, **{"m:h": 8.0})
+        check = None if not kw["verify"] else dict(converged=True, value=2.0, metrics={},
+                                                   consistent=False, message="WARNING")
+        return OptimizationResult(np.array(BASE), 1.0, [rec], "test", False,
+                                  dict(forward=1, gradient=1), 0.1, 0.0, None, (), check)
+
+    monkeypatch.setattr(optimize, "optimize_template", fake)
+    assert main(["optimize", "--out", str(tmp_path)]) == 3
+    assert seen["warm_start"] is True and seen["verify"] is True
+    assert main(["optimize", "--cold-closures", "--no-check", "--out", str(tmp_path)]) == 0
+    assert seen["warm_start"] is False and seen["verify"] is False
