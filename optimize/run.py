@@ -31,7 +31,8 @@ class OptimizationResult:
     JAX compilation; evaluation: the final `Evaluation`; files: paths written;
     check: the final design closed again from the placement (`verify=True`), a dict with
     'converged', 'value', 'metrics' and 'consistent' (its objective within
-    ``verify_rtol`` of the run's), or None when not checked."""
+    ``verify_rtol`` of the run's), or None when not checked (verify=False, a failed run,
+    or a run whose closures start from the placement anyway)."""
 
     rab: np.ndarray
     value: float
@@ -99,7 +100,8 @@ def optimize_template(scene: Scene | None = None, objective: Objective | None = 
     for name, v in (("max_iter", max_iter),):
         if not (isinstance(v, int) and v >= 0):
             raise ParameterError(f"{name} must be an integer >= 0; got {v!r}")
-    for name, v in (("max_step", max_step), ("gtol", gtol), ("ftol", ftol)):
+    for name, v in (("max_step", max_step), ("gtol", gtol), ("ftol", ftol),
+                    ("verify_rtol", verify_rtol)):
         if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
             raise ParameterError(f"{name} must be a finite number > 0; got {v!r}")
     if warm_start is None:
@@ -171,7 +173,7 @@ def optimize_template(scene: Scene | None = None, objective: Objective | None = 
         reason = state.reason or f"reached max_iter = {max_iter}"
         failed = state.failed
         check = None
-        if verify and not failed:
+        if verify and not failed and warm_start:     # a cold run's closures already are
             check = _verify(evaluator, state, verify_rtol)
             say(check["message"])
     seconds = time.perf_counter() - t_start

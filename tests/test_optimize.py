@@ -263,3 +263,5 @@ def test_cli_exits_3_when_the_final_check_disagrees(monkeypatch, tmp_path, capsy
     assert seen["warm_start"] is True and seen["verify"] is True
     assert main(["optimize", "--cold-closures", "--no-check", "--out", str(tmp_path)]) == 0
     assert seen["warm_start"] is False and seen["verify"] is False
+    with pytest.raises(ParameterError, match="verify_rtol must be a finite number > 0"):
+        optimize.run.optimize_template(Scene(), Objective(), verify_rtol=float("nan"))
