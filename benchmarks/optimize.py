@@ -2,7 +2,7 @@
 derivative-free baseline (scipy Nelder-Mead) on the same objective, on the benchmark root.
 
     python benchmarks/optimize.py [--h 1.5] [--maxfev 150] [--gtol 1e-5] [--ftol 1e-8]
-                                  [--methods lbfgs,adam] [--cold]
+                                  [--cold]
 
 Each method has its own `Evaluator` (the same compiled closures, warm starts from the last
 accepted point).  A gradient is counted as its measured cost in forward closures: the time
@@ -31,7 +31,7 @@ from jaxvalve import Scene  # noqa: E402
 from optimize import Evaluator, Objective, optimize_template
 
 
-NAMES = {"lbfgs": "L-BFGS + adjoint", "adam": "Adam + adjoint"}
+NAMES = {"lbfgs": "L-BFGS + adjoint"}
 
 
 def main(argv=None):
@@ -43,21 +43,15 @@ def main(argv=None):
     ap.add_argument("--ftol", type=float, default=1e-8,
                     help="gradient loops: stop when an iteration decreases f by less than this")
     ap.add_argument("--max-iter", type=int, default=60)
-    ap.add_argument("--methods", default="lbfgs",
-                    help="gradient-based optimisers to race against Nelder-Mead")
     ap.add_argument("--cold", action="store_true",
                     help="close every design from the placement (no warm starts): the "
                          "objective is then a function of (r, a, b) alone")
     args = ap.parse_args(argv)
-    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
-    for m in methods:
-        if m not in NAMES:
-            ap.error(f"--methods: unknown {m!r}; choose from {', '.join(NAMES)}")
     scene = Scene(h=args.h, rtol=1e-6, max_steps=5000)
     obj = Objective(area_ref=scene.template().area)
     start = np.array([scene.r, scene.a, scene.b])
     runs = {}
-    for m in methods:
+    for m in NAMES:
         ev = Evaluator(scene, obj, warm_start=not args.cold)
         t0 = time.perf_counter()
         res = optimize_template(scene, obj, evaluator=ev, optimizer=m, figures=False,
@@ -65,9 +59,9 @@ def main(argv=None):
                                 warm_start=not args.cold,
                                 verify=False)     # the path check is printed below
         wall = time.perf_counter() - t0
-        # cost of one value + gradient in forward closures, at the
-        # start (compiled by now): a cold closure from the placement, a warm one after a
-        # 1e-3 mm step, and the value with its derivatives
+        # cost of one value + gradient in forward closures, at the start (compiled by
+        # now): a closure from the placement, one after a 1e-3 mm step (warm unless
+        # --cold), and the value with its gradient
         tc, tf, tg = [], [], []
         for _ in range(2):
             s = time.perf_counter()

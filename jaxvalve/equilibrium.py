@@ -175,11 +175,9 @@ def _run(solver, problem, params, x0, nbrs, skin):
 ADJOINT_TOL, ADJOINT_MAXITER, ADJOINT_ACCEPT = 1e-12, 2000, 1e-8
 
 
-def _adjoint_solve(problem, params, x, nbrs, delta, g, tol=None, maxiter=None):
+def _adjoint_solve(problem, params, x, nbrs, delta, g):
     """mu solving K^T mu = g on free dofs (K = -dR/dx); returns (mu, vjp_fn of R, relative
     residual ||K^T mu - g|| / ||g|| of the GMRES solution)."""
-    tol = ADJOINT_TOL if tol is None else tol
-    maxiter = ADJOINT_MAXITER if maxiter is None else maxiter
     free = problem.free[:, None]
 
     def R(xx, pp):
@@ -192,10 +190,10 @@ def _adjoint_solve(problem, params, x, nbrs, delta, g, tol=None, maxiter=None):
     KT = lambda v: -vjp(v * free)[0] * free
     M = lambda r: _apply_blocks(V, 1.0 / w, r) * free
     gf = g * free
-    mu, _ = jax.scipy.sparse.linalg.gmres(KT, gf, tol=0.0, atol=tol * jnp.linalg.norm(gf),
-                                          restart=60, maxiter=maxiter // 60 + 1, M=M,
-                                          solve_method="batched")
     ng = jnp.linalg.norm(gf)
+    mu, _ = jax.scipy.sparse.linalg.gmres(KT, gf, tol=0.0, atol=ADJOINT_TOL * ng, restart=60,
+                                          maxiter=ADJOINT_MAXITER // 60 + 1, M=M,
+                                          solve_method="batched")
     res = jnp.linalg.norm(KT(mu) - gf) / jnp.where(ng > 0, ng, 1.0)
     return mu, vjp, res
 

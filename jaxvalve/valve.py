@@ -8,6 +8,7 @@ returns a `Valve`.  `settle(valve, ...)` is the closure at P = 0 that gives the 
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Any
 
 import jax.numpy as jnp
@@ -67,7 +68,7 @@ class Valve:
     def body(self):
         return np.asarray(self.problem.body)
 
-    @property
+    @functools.cached_property
     def skin(self) -> float:
         """Verlet skin (mm) of the contact pair lists: the leaflet mesh's median edge,
         at most 1 mm (`equilibrium.mesh_skin`)."""

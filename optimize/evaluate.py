@@ -93,7 +93,9 @@ class Evaluator:
         self.material, self.contact = scene.material(), scene.contact_law()
         self.bending = scene.bending_law()
         self.say = progress or (lambda s: None)
-        self.warm_start = bool(warm_start)
+        if not isinstance(warm_start, bool):
+            raise ParameterError(f"warm_start must be True or False; got {warm_start!r}")
+        self.warm_start = warm_start
         self.generation = 0
         self.compiles = 0
         self._build(np.array([scene.r, scene.a, scene.b] if mesh_at is None else mesh_at,
@@ -322,17 +324,19 @@ class Evaluator:
         """d/d(r, a, b) (3,) of <g_ref, ref(r, a, b)> + <g_x, x with sutured nodes placed>."""
         return jax.vjp(lambda q: self._placed(q, x), rab)[1]((g_ref, g_x))[0]
 
-    def pullback(self, rab, load, x, nbrs, mu, wrt_params=False):
+    def pullback(self, rab, load, x, nbrs, mu, wrt_params=False, params=None):
         """d/d(r, a, b) (3,) of <mu, R(x with the template's sutured nodes, params(r, a,
         b))> at a closed state x of template (r, a, b) (its sutured nodes already where the
         template puts them); with ``wrt_params`` also its derivative with respect to the
         `Params` (read its material moduli, thickness, pressure).  The residual's VJP is
         `tangent.residual_vjp`, with the arguments of the adjoint's K^T products, so the
         program the adjoint solve compiled serves; only the template's part (reference
-        nodes and sutured positions) compiles here."""
+        nodes and sutured positions) compiles here.  params: the load's `Params` at
+        (r, a, b) when the caller has them (the adjoint's), else built here."""
         from jaxvalve.tangent import residual_vjp
 
-        params = self.base[load].replace(ref=self.design.ref(self.theta(rab)))
+        if params is None:
+            params = self.base[load].replace(ref=self.design.ref(self.theta(rab)))
         gx, gp = residual_vjp(jnp.asarray(x), self.valve.problem, params, nbrs, mu)
         g = self._design_pull_jit(rab, x, gp.ref, gx)
         return (g, gp) if wrt_params else g
@@ -369,7 +373,7 @@ class Evaluator:
             for k, name in enumerate(names):
                 mu, _ = adjoint_solve(self.valve.problem, params, sol.x, sol.nbrs, J_x[k])
                 mu = jnp.asarray(mu)
-                g_rab, gp = self.pullback(rab, load, sol.x, sol.nbrs, mu, True)
+                g_rab, gp = self.pullback(rab, load, sol.x, sol.nbrs, mu, True, params)
                 g = np.asarray(J_rab[k]) + np.asarray(g_rab)
                 d = dict(r=float(g[0]), a=float(g[1]), b=float(g[2]))
                 for f in dataclasses.fields(gp.material):
@@ -410,5 +414,6 @@ class Evaluator:
             params = self.base[load].replace(ref=self.design.ref(th))
             mu, rep = adjoint_solve(self.valve.problem, params, sol.x, sol.nbrs, gx[load])
             reports.append(rep)
-            g = g + np.asarray(self.pullback(rab, load, sol.x, sol.nbrs, jnp.asarray(mu)))
+            g = g + np.asarray(self.pullback(rab, load, sol.x, sol.nbrs, jnp.asarray(mu),
+                                             params=params))
         return float(v), g, {"adjoint": reports}

@@ -104,6 +104,9 @@ def optimize_template(scene: Scene | None = None, objective: Objective | None = 
                     ("verify_rtol", verify_rtol)):
         if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
             raise ParameterError(f"{name} must be a finite number > 0; got {v!r}")
+    for name, v in (("warm_start", warm_start), ("verify", verify)):
+        if not (isinstance(v, bool) or (name == "warm_start" and v is None)):
+            raise ParameterError(f"{name} must be True or False; got {v!r}")
     if warm_start is None:
         warm_start = True if evaluator is None else evaluator.warm_start
     options = dict(max_iter=max_iter, max_step=max_step, gtol=gtol, ftol=ftol, eps=eps,
@@ -226,7 +229,7 @@ def _verify(evaluator, state, rtol):
 def _evaluator(given, scene, objective, eps, mesh_at, warm_start=True):
     if given is None:
         return Evaluator(scene, objective, eps=eps, mesh_at=mesh_at, warm_start=warm_start)
-    given.warm_start = bool(warm_start)
+    given.warm_start = warm_start
     start = np.array([scene.r, scene.a, scene.b]) if mesh_at is None else np.asarray(mesh_at)
     if not np.array_equal(given.mesh_at, start):
         given._build(start)          # the run's mesh (a remesh in an earlier run moved it)

@@ -195,7 +195,7 @@ def test_bad_start_and_non_finite_objective_stop_with_a_reason(evaluator, monkey
     assert status["failed"] and "not finite" in status["reason"]
 
 
-def test_warm_starts_and_the_final_check_from_the_placement(evaluator, monkeypatch):
+def test_warm_starts_and_the_final_check_from_the_placement(evaluator):
     """warm_start=False closes from the placement whatever the warm start.  Path
     dependence is reported, never passed off as the design's objective: a closure from
     the placement that disagrees with the run's, or does not converge, makes the result
@@ -205,12 +205,6 @@ def test_warm_starts_and_the_final_check_from_the_placement(evaluator, monkeypat
     from optimize import run as run_mod
 
     sc, obj = evaluator.scene, evaluator.objective
-    real = evaluator.forward
-
-    def other_branch(rab, warm=None, **kw):
-        e = real(rab, warm, **kw)
-        return dataclasses.replace(e, value=e.value * 1.5) if warm is None else e
-
     # warm_start=False: a closure ignores the warm start and repeats the placement's
     e0 = evaluator.forward(BASE)
     steps = lambda e: [x["steps"] for x in e.solves]  # noqa: E731
@@ -226,18 +220,23 @@ def test_warm_starts_and_the_final_check_from_the_placement(evaluator, monkeypat
                            figures=False)
     assert ok.records[-1]["iteration"] == 1 and ok.check["converged"] and ok.consistent
     assert abs(ok.check["value"] - ok.value) <= 1e-6 * ok.value
-    monkeypatch.setattr(evaluator, "forward", other_branch)
-    res = optimize_template(sc, obj, evaluator=evaluator, max_iter=0, figures=False)
-    assert not res.consistent and res.check["converged"]
-    assert "path-dependent" in res.check["message"]
-    assert res.check["value"] == pytest.approx(1.5 * res.value, rel=1e-9)
-    state = run_mod.loop.init(evaluator, run_mod.loop.make_optimizer())
 
-    class Stalls:            # an evaluator whose closure from the placement stalls
+    class OtherBranch:       # its closure from the placement lands on another state
+        def __init__(self, **change):
+            self.change = change
+
         def forward(self, rab, warm=None):
-            return dataclasses.replace(state.evaluation, converged=False,
-                                       reason="closure at 80 mmHg: stalled (test)")
-    check = run_mod._verify(Stalls(), state, 1e-3)
+            assert warm is None
+            return dataclasses.replace(ok.evaluation, **self.change)
+
+    state = dataclasses.make_dataclass("S", ["rab", "value", "evaluation"])(
+        ok.rab, ok.value, ok.evaluation)
+    check = run_mod._verify(OtherBranch(value=1.5 * ok.value), state, 1e-3)
+    assert not check["consistent"] and check["converged"]
+    assert "path-dependent" in check["message"]
+    assert check["value"] == pytest.approx(1.5 * ok.value, rel=1e-12)
+    check = run_mod._verify(OtherBranch(converged=False, reason="stalled (test)"), state,
+                            1e-3)
     assert not check["consistent"] and not check["converged"]
     assert "does not close from the placement" in check["message"]
 
@@ -265,3 +264,5 @@ def test_cli_exits_3_when_the_final_check_disagrees(monkeypatch, tmp_path, capsy
     assert seen["warm_start"] is False and seen["verify"] is False
     with pytest.raises(ParameterError, match="verify_rtol must be a finite number > 0"):
         optimize.run.optimize_template(Scene(), Objective(), verify_rtol=float("nan"))
+    with pytest.raises(ParameterError, match="warm_start must be True or False"):
+        optimize.run.optimize_template(Scene(), Objective(), warm_start="no")
