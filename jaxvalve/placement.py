@@ -43,9 +43,13 @@ def along_path(path, t):
     return jnp.where((u <= 0.0)[:, None], path[0], out)
 
 
+_along_path_jit = jax.jit(along_path)
+
+
 def along_polyline(path, t):
-    """`along_path` on the host: NumPy in, NumPy (K, 3) out."""
-    return np.asarray(along_path(np.asarray(path, float), np.asarray(t, float)))
+    """`along_path` on the host: NumPy in, NumPy (K, 3) out (one compiled program per
+    shape, not one per jax.numpy operation)."""
+    return np.asarray(_along_path_jit(np.asarray(path, float), np.asarray(t, float)))
 
 
 def leaflet_frame(c0, c1, axis, centre):

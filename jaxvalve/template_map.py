@@ -18,7 +18,10 @@ When the template moves far, triangles distort: `quality` reports the minimum an
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
+
+import jax
 
 import jax.numpy as jnp
 import numpy as np
@@ -88,15 +91,21 @@ class TemplateMap:
         u = jnp.where(e == 0, f * a, jnp.where(e == 1, a + f * L_arc, a + L_arc + f * a))
         return u / L
 
+    @functools.cached_property
+    def _points_host(self):
+        """`points` compiled once for the host checks below (eager jax.numpy would
+        compile each of its operations)."""
+        return jax.jit(self.points)
+
     def quality(self, r, a, b, alpha=160.0) -> dict:
         """`mesh_quality` of the mapped mesh (host-side, concrete parameters)."""
-        p = np.asarray(self.points(float(r), float(a), float(b), float(alpha)))
+        p = np.asarray(self._points_host(float(r), float(a), float(b), float(alpha)))
         return mesh_quality(p, self.base.triangles)
 
     def needs_remesh(self, r, a, b, alpha=160.0, min_angle=15.0) -> bool:
         """True when the mapped mesh has an angle below ``min_angle`` degrees or an
         inverted triangle: time to mesh the new template afresh (outside the gradient)."""
-        p = np.asarray(self.points(float(r), float(a), float(b), float(alpha)))
+        p = np.asarray(self._points_host(float(r), float(a), float(b), float(alpha)))
         t = self.base.triangles
         if np.min(signed_areas_np(p, t)) <= 0:
             return True
@@ -127,7 +136,7 @@ def template_map(mesh: LeafletMesh) -> TemplateMap:
     boundary = np.arange(K)
     interior = np.arange(K, n)
     tm = TemplateMap(mesh, boundary, edge, frac, interior, np.zeros((n - K, K)))
-    pb = np.asarray(tm.boundary_points(tpl.r, tpl.a, tpl.b, tpl.alpha))
+    pb = np.asarray(jax.jit(tm.boundary_points)(tpl.r, tpl.a, tpl.b, tpl.alpha))
     err = float(np.max(np.abs(pb - mesh.points[:K]))) if K else 0.0
     if err > 1e-9 * max(1.0, tpl.height):
         raise MeshError(f"the mesh's boundary nodes are not where the template puts them "

@@ -6,7 +6,8 @@
 * ``forward(rab, warm)``: the closures the objective needs (3 mmHg for h_E, 80 mmHg for the
   other metrics; a closure no target needs is skipped), each warm-started from the
   previous evaluation's state with the sutured nodes moved to the new template, then the
-  smooth metrics on a `SmoothPlan` built at the new state, and the objective.
+  smooth metrics on a `SmoothPlan` built at the new state, and the objective, together
+  with its partial derivatives at fixed states (one compiled program, `_terms`).
 * ``gradient(ev)``: the objective's value and its gradient with respect to (r, a, b).
   The equilibria enter through the implicit adjoint: one solve K^T mu = df/dx per
   closure (`tangent.adjoint_solve`; `adjoint="jax"` uses `equilibrium.implicit_state`),
@@ -53,7 +54,9 @@ class Evaluation:
     `Solution`)}; plans {load: SmoothPlan}; metrics {name: float} (smooth, METRICS
     units); terms {name: float}; value: f; d_cc: commissure distance (mm); solves: one
     dict per closure (load, pressure, converged, result, steps, residual, seconds);
-    converged: every closure converged (else value is inf and ``reason`` says why)."""
+    converged: every closure converged (else value is inf and ``reason`` says why);
+    partials: (df/d(r, a, b) (3,) at fixed states, {load: df/dx (N, 3)}), computed with
+    the metrics by one program, for `Evaluator.gradient`."""
 
     rab: np.ndarray
     generation: int
@@ -66,6 +69,7 @@ class Evaluation:
     solves: tuple
     converged: bool
     reason: str = ""
+    partials: tuple | None = None
 
 
 class Evaluator:
@@ -103,8 +107,8 @@ class Evaluator:
 
     # ------------------------------------------------------------------ setup
     def theta(self, rab):
-        return jnp.concatenate([jnp.asarray(rab, jnp.float64),
-                                jnp.asarray([self.scene.alpha], jnp.float64)])
+        """(r, a, b, alpha) (4,) as a host array."""
+        return np.concatenate([np.asarray(rab, np.float64), [float(self.scene.alpha)]])
 
     def _build(self, rab):
         sc = self.scene.replace(r=float(rab[0]), a=float(rab[1]), b=float(rab[2]))
@@ -116,8 +120,7 @@ class Evaluator:
                                           self.bending) for l in self.loads}
         self.generation += 1
         self.mesh_at = np.asarray(rab, float)
-        self.capacity = None
-        self._metrics_jit = jax.jit(lambda x, plan: smooth_metrics(x, plan, self.eps))
+        self.capacity = self.w_band = None
         self._grad_jit = jax.jit(jax.value_and_grad(
             lambda rab, st, pl, ar: self._terms(rab, None, st, pl, ar, True), has_aux=True))
         self._direct_jit = jax.jit(jax.value_and_grad(
@@ -127,6 +130,9 @@ class Evaluator:
         self._metric_jac_jit = jax.jit(jax.jacrev(self._load_metrics, argnums=(0, 2)),
                                        static_argnums=(1,))
         self._dcc_jit = jax.jit(self.d_cc)
+        # host-side maps, compiled once per mesh (eager jax.numpy would compile each op)
+        self._x_fixed_jit = jax.jit(self.design.x_fixed)
+        self._ref_jit = jax.jit(self.design.ref)
         self.say(f"mesh generation {self.generation}: {len(lm.triangles)} triangles a "
                  f"leaflet at (r, a, b) = {tuple(np.round(rab, 4))}")
 
@@ -144,14 +150,17 @@ class Evaluator:
         if self.capacity is not None:
             try:
                 return smooth_plan(x, v.triangles, v.body, v.free_edge,
-                                   capacity=self.capacity, **kw)
-            except ParameterError:       # more candidates than the capacity: grow it
+                                   capacity=self.capacity, w_band=self.w_band, **kw)
+            except ParameterError:       # more candidates or a wider band: grow them
                 pass
         plan = smooth_plan(x, v.triangles, v.body, v.free_edge, **kw)
-        # room for 50 % more candidate pairs before the metric functions compile again
+        # room for 50 % more candidate pairs, and 25 % more grid lines per triangle (w
+        # grid and edges change with the state), before the metric functions compile again
         self.capacity = int(np.ceil(1.5 * plan.cand_node.shape[0] / 1024) * 1024)
+        self.w_band = int(np.ceil(1.25 * plan.w_band)) + 1
         self.compiles += 1
-        return smooth_plan(x, v.triangles, v.body, v.free_edge, capacity=self.capacity, **kw)
+        return smooth_plan(x, v.triangles, v.body, v.free_edge, capacity=self.capacity,
+                           w_band=self.w_band, **kw)
 
     # ------------------------------------------------------------------ forward
     def feasible(self, rab) -> str:
@@ -198,8 +207,8 @@ class Evaluator:
             else:
                 seed = self.valve.x_start   # not the other load's state: closing at
                 #                             80 mmHg from the 3 mmHg state chatters
-            x0 = self.design.x_fixed(th, x_free=jnp.asarray(seed))
-            params = self.base[load].replace(ref=self.design.ref(th))
+            x0 = self._x_fixed_jit(th, jnp.asarray(seed))
+            params = self.base[load].replace(ref=self._ref_jit(th))
             if material is not None:
                 params = params.replace(material=material)
             t0 = time.perf_counter()
@@ -218,19 +227,19 @@ class Evaluator:
                                   float("inf"), float("nan"), tuple(solves), False, reason)
             states[load] = (x0, sol)
             plans[load] = self._plan(x)
-            m = {k: float(v) for k, v in self._metrics_jit(sol.x, plans[load]).items()
-                 if np.ndim(v) == 0}
-            for name, (ld, key, fac, _, _) in METRICS.items():
-                if ld == load:
-                    metrics[name] = fac * m[key]
+        # the metrics, the objective and its partial derivatives at fixed states: one
+        # program (the backward pass costs about as much as the metrics themselves)
+        xs = {l: states[l][1].x for l in self.loads}
+        (_, (terms, m)), (g, gx) = self._direct_jit(jnp.asarray(rab), xs, states, plans,
+                                                    jnp.asarray(self.area_ref))
+        metrics = {k: float(m[k]) for k in METRICS if k in m}       # METRICS order
+        terms = {k: float(v) for k, v in terms.items()}
         d_cc = float(self._dcc_jit(th))
-        terms = {k: float(v) for k, v in self.objective.terms(
-            th, self.scene.alpha, metrics, d_cc, self.area_ref).items()}
         metrics["area"] = Template(*rab, self.scene.alpha).area
         value = float(sum(terms.values()))
         reason = "" if np.isfinite(value) else f"the objective is not finite: {terms}"
         return Evaluation(rab, self.generation, states, plans, metrics, terms, value, d_cc,
-                          tuple(solves), bool(np.isfinite(value)), reason)
+                          tuple(solves), bool(np.isfinite(value)), reason, (g, gx))
 
     def result(self, ev: Evaluation, *, throw: bool = True):
         """The exact (non-smooth) coaptation of a converged evaluation, as the
@@ -248,8 +257,8 @@ class Evaluator:
         tpl = Template(*np.asarray(ev.rab, float), self.scene.alpha)
         lm = dataclasses.replace(self.valve.leaflet, template=tpl,
                                  points=np.asarray(self.design.tmap.points(*np.asarray(th))))
-        x_fix = np.asarray(self.design.x_fixed(th))
-        valve = dataclasses.replace(self.valve, leaflet=lm, ref=np.asarray(self.design.ref(th)),
+        x_fix = np.asarray(self._x_fixed_jit(th))
+        valve = dataclasses.replace(self.valve, leaflet=lm, ref=np.asarray(self._ref_jit(th)),
                                     x_placed=x_fix, x_start=x_fix)
         xs, reports = {}, {}
         for s in ev.solves:
@@ -262,11 +271,11 @@ class Evaluator:
             seed = next(iter(xs.values()))
             params = self.valve.params(self.material, self.pressure[load], self.contact,
                                        self.scene.thickness, np.deg2rad(self.scene.fibre_angle),
-                                       self.bending).replace(ref=self.design.ref(th))
+                                       self.bending).replace(ref=self._ref_jit(th))
             with compile_timer() as ct:
                 t0 = time.perf_counter()
                 sol = equilibrium.solve(self.valve.problem, params,
-                                        self.design.x_fixed(th, x_free=jnp.asarray(seed)),
+                                        self._x_fixed_jit(th, jnp.asarray(seed)),
                                         self.solver, throw=False, skin=self.valve.skin)
                 x = np.asarray(sol.x)
                 wall = time.perf_counter() - t0
@@ -313,11 +322,11 @@ class Evaluator:
                 if ld == load:
                     metrics[name] = fac * m[key]
         terms = self.objective.terms(th, self.scene.alpha, metrics, self.d_cc(th), area_ref)
-        return sum(terms.values()), terms
+        return sum(terms.values()), (terms, metrics)
 
     def _placed(self, rab, x):
         """The reference nodes of template (r, a, b) and x with its sutured nodes placed."""
-        th = self.theta(rab)
+        th = jnp.concatenate([rab, jnp.asarray([self.scene.alpha], rab.dtype)])
         return self.design.ref(th), self.design.x_fixed(th, x_free=x)
 
     def _design_pullback(self, rab, x, g_ref, g_x):
@@ -336,7 +345,7 @@ class Evaluator:
         from jaxvalve.tangent import residual_vjp
 
         if params is None:
-            params = self.base[load].replace(ref=self.design.ref(self.theta(rab)))
+            params = self.base[load].replace(ref=self._ref_jit(self.theta(rab)))
         gx, gp = residual_vjp(jnp.asarray(x), self.valve.problem, params, nbrs, mu)
         g = self._design_pull_jit(rab, x, gp.ref, gx)
         return (g, gp) if wrt_params else g
@@ -369,7 +378,7 @@ class Evaluator:
             names = [n for n, (ld, *_rest) in METRICS.items() if ld == load]
             x0, sol = ev.states[load]
             J_rab, J_x = self._metric_jac_jit(rab, load, sol.x, ev.plans[load])
-            params = self.base[load].replace(ref=self.design.ref(th))
+            params = self.base[load].replace(ref=self._ref_jit(th))
             for k, name in enumerate(names):
                 mu, _ = adjoint_solve(self.valve.problem, params, sol.x, sol.nbrs, J_x[k])
                 mu = jnp.asarray(mu)
@@ -404,14 +413,17 @@ class Evaluator:
             return float(v), np.asarray(g), {"adjoint": []}
         if adjoint != "lu":
             raise ParameterError(f"adjoint must be 'lu' or 'jax'; got {adjoint!r}")
-        xs = {l: ev.states[l][1].x for l in self.loads}
-        (v, _), (g, gx) = self._direct_jit(rab, xs, ev.states, ev.plans, area_ref)
+        if ev.partials is None:
+            xs = {l: ev.states[l][1].x for l in self.loads}
+            (v, _), (g, gx) = self._direct_jit(rab, xs, ev.states, ev.plans, area_ref)
+        else:
+            v, (g, gx) = ev.value, ev.partials
         g = np.asarray(g)
         reports = []
         th = self.theta(ev.rab)
         for load in self.loads:
             x0, sol = ev.states[load]
-            params = self.base[load].replace(ref=self.design.ref(th))
+            params = self.base[load].replace(ref=self._ref_jit(th))
             mu, rep = adjoint_solve(self.valve.problem, params, sol.x, sol.nbrs, gx[load])
             reports.append(rep)
             g = g + np.asarray(self.pullback(rab, load, sol.x, sol.nbrs, jnp.asarray(mu),

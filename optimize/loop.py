@@ -20,9 +20,11 @@ which).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from typing import Any
 
+import jax
 import numpy as np
 import optax
 
@@ -46,6 +48,12 @@ def make_optimizer(name: str = "lbfgs", learning_rate: float = 0.5, decay: float
                                  f"{learning_rate}, {decay}")
         return optax.adam(optax.exponential_decay(learning_rate, 1, decay))
     raise ParameterError(f"optimizer must be one of {OPTIMIZERS}; got {name!r}")
+
+
+@functools.lru_cache(maxsize=8)
+def _compiled_update(optimizer):
+    """optimizer.update under one jit (eager, each of its operations would compile)."""
+    return jax.jit(optimizer.update)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -136,7 +144,7 @@ def update(evaluator, optimizer, state: LoopState, *, adjoint: str = "lu",
     lo, hi = obj.lower, obj.upper
     rab, g = state.rab, state.grad
     counts = dict(state.counts)
-    upd, opt_state = optimizer.update(g, state.opt_state, rab)
+    upd, opt_state = _compiled_update(optimizer)(g, state.opt_state, rab)
     d = np.asarray(upd, float)
     if not np.all(np.isfinite(d)):
         return dataclasses.replace(state, done=True, failed=True,

@@ -31,9 +31,10 @@ DEFAULT_BOUNDS = {"r": (8.0, 16.0), "a": (2.0, 14.0), "b": (8.0, 22.0)}
 
 
 def chord(r, a, alpha):
-    """|AD| (mm) of the template, differentiable: 2 (r sin(alpha/2) + a cos(alpha/2))."""
-    beta = alpha * (math.pi / 360.0)
-    return 2.0 * (r * jnp.sin(beta) + a * jnp.cos(beta))
+    """|AD| (mm) of the template, differentiable in r and a: 2 (r sin(alpha/2) + a
+    cos(alpha/2)); alpha (degrees) is a fixed number."""
+    beta = float(alpha) * (math.pi / 360.0)
+    return 2.0 * (r * math.sin(beta) + a * math.cos(beta))
 
 
 @dataclasses.dataclass(frozen=True)

@@ -449,3 +449,48 @@ def test_smooth_individual_functions_and_plan():
         smooth_plan(np.full_like(x, np.nan), t, b, f, **KW)
     with pytest.raises(ParameterError, match="skin"):
         smooth_plan(x, t, b, f, **KW, skin=0.0)
+
+
+def test_banded_grid_heights_equal_every_line_against_every_triangle():
+    """`_grid_heights` meets each triangle with plan.w_band lines only; on the Y star
+    its curves and their gradient equal those of all K lines against all triangles
+    (`_heights`), a plan used beyond its validity gives NaN instead of missing chords,
+    and a NaN node, wherever it is, makes every metric NaN."""
+    from jaxvalve.coaptation.smooth import _grid_heights, _heights, _lse_max, _phi
+    x, t, b, r, f = ystar()
+    x = x + 0.02 * np.random.default_rng(5).standard_normal(x.shape)
+    plan = smooth_plan(x, t, b, f, **KW, w=np.linspace(0.0, 9.0, 37))
+    assert 2 <= plan.w_band < 37
+    eps = 0.05
+
+    def h(fn, x):
+        return _lse_max(fn(x, plan, _phi(x, plan), eps), eps)
+
+    def dense(x, plan, phi, eps):
+        return _heights(x, plan, phi, eps, plan.w)
+
+    np.testing.assert_allclose(_grid_heights(x, plan, _phi(x, plan), eps),
+                               dense(x, plan, _phi(x, plan), eps), rtol=0, atol=1e-13)
+    g_band = jax.grad(lambda x: h(_grid_heights, x))(x)
+    g_all = jax.grad(lambda x: h(dense, x))(x)
+    assert np.max(np.abs(g_all)) > 0
+    np.testing.assert_allclose(g_band, g_all, rtol=0, atol=1e-13)
+    roomy = smooth_plan(x, t, b, f, **KW, w=np.linspace(0.0, 9.0, 37),
+                        w_band=plan.w_band + 5)     # shared programs: a fixed, larger band
+    assert roomy.w_band == plan.w_band + 5
+    np.testing.assert_allclose(_grid_heights(x, roomy, _phi(x, roomy), eps),
+                               dense(x, plan, _phi(x, plan), eps), rtol=0, atol=1e-13)
+    with pytest.raises(ParameterError, match="w_band"):
+        smooth_plan(x, t, b, f, **KW, w=np.linspace(0.0, 9.0, 37), w_band=plan.w_band - 1)
+    wide = smooth_plan(x, t, b, f, **KW, w=np.linspace(-40.0, 40.0, 321))
+    o = np.asarray(KW["origin"], float)
+    stretched = o + 4.0 * (np.asarray(x, float) - o)   # triangles 4x wider: beyond the plan
+    assert not np.isnan(_grid_heights(x, wide, _phi(x, wide), eps)).any()
+    assert np.all(np.isnan(_grid_heights(stretched, wide, _phi(stretched, wide), eps)))
+    for node in (0, 3, len(x) // 2):          # a NaN node far from, or in, the zones
+        bad = np.asarray(x, float).copy()
+        bad[node, 0] = np.nan
+        assert np.all(np.isnan(np.asarray(smooth_gap_field(bad, plan))))
+        m = _metrics(bad, plan, eps)
+        assert all(np.all(np.isnan(np.asarray(v))) for v in m.values()), node
+        assert np.isnan(float(smooth_h(bad, plan, eps)))

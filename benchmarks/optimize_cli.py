@@ -1,0 +1,73 @@
+"""`jaxvalve optimize` with its defaults, timed as a user runs it (issue 4: under 60 s).
+
+    python benchmarks/optimize_cli.py              # 2 runs: empty compilation cache, then warm
+    python benchmarks/optimize_cli.py --runs 3     # 3 runs
+    python benchmarks/optimize_cli.py --no-check   # passes --no-check to the command
+
+Each run is a fresh process running ``jaxvalve optimize --out DIR`` (`jaxvalve.cli.main`), with
+``JAXVALVE_CACHE_DIR`` set to a new, empty directory before the first run and kept for the
+later ones (so run 1 compiles everything, later runs load XLA executables from the cache).
+The table gives the command's wall time, the run's own clock and its compile time (from
+``trajectory.json``), the iterations' clock at the last one, the rest of the run clock
+(the final check, plus setting up the mesh and writing files, which the iterations' clock
+leaves out), the iterations and the objective, and the check's relative gap.  The last line compares the first run's wall time with the 60 s target.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+TARGET_S = 60.0
+CLI = "import sys; from jaxvalve.cli import main; sys.exit(main(sys.argv[1:]))"
+
+
+def run_once(cache: Path, out: Path, extra) -> dict:
+    env = dict(os.environ, JAXVALVE_CACHE_DIR=str(cache))
+    t0 = time.perf_counter()
+    p = subprocess.run([sys.executable, "-c", CLI, "optimize", "--out", str(out),
+                        *extra], cwd=ROOT, env=env, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    if p.returncode != 0:
+        raise SystemExit(f"jaxvalve optimize exited {p.returncode}:\n{p.stdout}\n{p.stderr}")
+    d = json.loads((out / "trajectory.json").read_text())
+    st, last = d["status"], d["records"][-1]
+    chk = st.get("check") or {}
+    gap = (abs(chk["value"] - last["objective"]) / abs(last["objective"])
+           if chk.get("value") is not None else float("nan"))
+    return dict(wall=wall, clock=st["seconds"], compile=st["compile_s"],
+                last_it=last["seconds"], iterations=last["iteration"],
+                f=last["objective"], gap=gap)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--runs", type=int, default=2)
+    ap.add_argument("--no-check", action="store_true")
+    args = ap.parse_args(argv)
+    extra = ["--no-check"] if args.no_check else []
+    with tempfile.TemporaryDirectory(prefix="jaxvalve_cli_") as tmp:
+        cache = Path(tmp) / "xla"
+        rows = [run_once(cache, Path(tmp) / f"run{k}", extra) for k in range(args.runs)]
+    print(f"jaxvalve optimize (defaults{', --no-check' if extra else ''}), {os.cpu_count()} "
+          f"CPUs; run 1 with an empty compilation cache, later runs with it filled")
+    print(f"{'run':>3} {'cache':>6} {'wall s':>7} {'clock s':>8} {'compile s':>9} "
+          f"{'last it s':>9} {'rest s':>7} {'iters':>5} {'objective':>10} {'check gap':>9}")
+    for k, r in enumerate(rows):
+        print(f"{k + 1:>3} {'empty' if k == 0 else 'warm':>6} {r['wall']:7.1f} "
+              f"{r['clock']:8.1f} {r['compile']:9.1f} {r['last_it']:9.1f} "
+              f"{r['clock'] - r['last_it']:7.1f} {r['iterations']:5d} {r['f']:10.7f} "
+              f"{r['gap']:9.1e}")
+    w = rows[0]["wall"]
+    print(f"first run (empty cache): {w:.1f} s wall against the {TARGET_S:.0f} s target: "
+          f"{'met' if w < TARGET_S else 'MISSED'} ({TARGET_S / w:.2f}x margin)")
+
+
+if __name__ == "__main__":
+    main()
