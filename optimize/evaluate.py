@@ -56,7 +56,7 @@ class Evaluation:
     dict per closure (load, pressure, converged, result, steps, residual, seconds);
     converged: every closure converged (else value is inf and ``reason`` says why);
     partials: (df/d(r, a, b) (3,) at fixed states, {load: df/dx (N, 3)}), computed with
-    the metrics by one program, for `Evaluator.gradient`."""
+    the metrics by one program, for `Evaluator.gradient` (None when not converged)."""
 
     rab: np.ndarray
     generation: int
@@ -413,11 +413,7 @@ class Evaluator:
             return float(v), np.asarray(g), {"adjoint": []}
         if adjoint != "lu":
             raise ParameterError(f"adjoint must be 'lu' or 'jax'; got {adjoint!r}")
-        if ev.partials is None:
-            xs = {l: ev.states[l][1].x for l in self.loads}
-            (v, _), (g, gx) = self._direct_jit(rab, xs, ev.states, ev.plans, area_ref)
-        else:
-            v, (g, gx) = ev.value, ev.partials
+        v, (g, gx) = ev.value, ev.partials        # from the forward evaluation's program
         g = np.asarray(g)
         reports = []
         th = self.theta(ev.rab)

@@ -113,7 +113,8 @@ def smooth_plan(x0, triangles, body, free_edge, *, axis, origin, annulus_level, 
     move up to skin / 2); w (K,) grid of the pair curves, default n_w points on
     [0, max distance of a node from the axis + skin]; capacity: length of the padded
     candidate arrays (default: the count rounded up to 1024); w_band: the lines of w met
-    per triangle (default: the most a triangle can span while the plan is valid).  Plans
+    per triangle (default: the most a triangle can span while the plan is valid; not used
+    when w is not increasing, where every line meets every triangle).  Plans
     of equal capacity and w_band share compiled metric functions; a capacity below the
     count or a w_band below that bound raises `ParameterError`."""
     x0 = check_x(x0, name="x0")
