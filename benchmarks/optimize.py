@@ -6,9 +6,10 @@ derivative-free baseline (scipy Nelder-Mead) on the same objective, on the bench
 
 Each method has its own `Evaluator` (the same compiled closures, warm starts from the last
 accepted point).  A gradient is counted as its measured cost in forward closures: the time
-of one value-and-gradient divided by the time of one closure after a 1e-3 mm step
-(warm-started, or from the placement with --cold), both measured here at the start after
-compilation.  --cold closes every design from the placement, so that the objective is a
+of one gradient (the adjoint and its pullback; each forward evaluation already computes
+the objective's partials at fixed states) divided by the time of one closure after a
+1e-3 mm step (warm-started, or from the placement with --cold), both measured here at the
+start after compilation.  --cold closes every design from the placement, so that the objective is a
 function of (r, a, b) alone; warm starts are about 3x cheaper but can follow a branch of
 closed states the open valve does not reach, which the path check at the end prints.
 Prints a table and the ratio of forward-solve equivalents each method needed to reach
@@ -31,7 +32,7 @@ from jaxvalve import Scene  # noqa: E402
 from optimize import Evaluator, Objective, optimize_template
 
 
-NAMES = {"lbfgs": "L-BFGS + adjoint"}
+NAME = "L-BFGS + adjoint"
 
 
 def main(argv=None):
@@ -50,33 +51,30 @@ def main(argv=None):
     scene = Scene(h=args.h, rtol=1e-6, max_steps=5000)
     obj = Objective(area_ref=scene.template().area)
     start = np.array([scene.r, scene.a, scene.b])
-    runs = {}
-    for m in NAMES:
-        ev = Evaluator(scene, obj, warm_start=not args.cold)
-        t0 = time.perf_counter()
-        res = optimize_template(scene, obj, evaluator=ev, optimizer=m, figures=False,
-                                gtol=args.gtol, ftol=args.ftol, max_iter=args.max_iter,
-                                warm_start=not args.cold,
-                                verify=False)     # the path check is printed below
-        wall = time.perf_counter() - t0
-        # cost of one value + gradient in forward closures, at the start (compiled by
-        # now): a closure from the placement, one after a 1e-3 mm step (warm unless
-        # --cold), and the value with its gradient
-        tc, tf, tg = [], [], []
-        for _ in range(2):
-            s = time.perf_counter()
-            e0 = ev.forward(start)
-            tc.append(time.perf_counter() - s)
-            s = time.perf_counter()
-            ev.forward(start + 1e-3, e0)
-            tf.append(time.perf_counter() - s)
-            s = time.perf_counter()
-            ev.gradient(e0)
-            tg.append(time.perf_counter() - s)
-        ratio = float(np.min(tg) / np.min(tf))
-        eq = [r["forward"] + ratio * r["gradient"] for r in res.records]
-        runs[m] = dict(res=res, ev=ev, wall=wall, ratio=ratio, eq=eq, tc=min(tc),
-                       tf=min(tf), tg=min(tg))
+    ev = Evaluator(scene, obj, warm_start=not args.cold)
+    t0 = time.perf_counter()
+    res = optimize_template(scene, obj, evaluator=ev, figures=False, gtol=args.gtol,
+                            ftol=args.ftol, max_iter=args.max_iter,
+                            warm_start=not args.cold,
+                            verify=False)     # the path check is printed below
+    wall = time.perf_counter() - t0
+    # cost of a gradient in forward closures, at the start (compiled by now): a closure
+    # from the placement, one after a 1e-3 mm step (warm unless --cold), and a gradient
+    # (the forward evaluations already hold the objective's partials at fixed states)
+    tc, tf, tg = [], [], []
+    for _ in range(2):
+        s = time.perf_counter()
+        e0 = ev.forward(start)
+        tc.append(time.perf_counter() - s)
+        s = time.perf_counter()
+        ev.forward(start + 1e-3, e0)
+        tf.append(time.perf_counter() - s)
+        s = time.perf_counter()
+        ev.gradient(e0)
+        tg.append(time.perf_counter() - s)
+    tc, tf, tg = min(tc), min(tf), min(tg)
+    ratio = tg / tf
+    eq = [r["forward"] + ratio * r["gradient"] for r in res.records]
     # Nelder-Mead on the same objective (infeasible or non-converged: +inf)
     ev2 = Evaluator(scene, obj, warm_start=not args.cold)
     hist, last = [], [None]
@@ -104,86 +102,73 @@ def main(argv=None):
           f"(h_c >= 4, h = 8, size weight 0.1), rtol 1e-6; gradient loops gtol {args.gtol:g}, "
           f"ftol {args.ftol:g}; closures "
           + ("from the placement (--cold)" if args.cold else "warm-started"))
-    for m, R in runs.items():
-        print(f"{NAMES[m]}: one value+gradient = {R['tg']:.3f} s = {R['tg'] / R['tc']:.2f} cold "
-              f"closures ({R['tc']:.3f} s, from the placement) = {R['ratio']:.2f} "
-              f"{'cold' if args.cold else 'warm'} closures after a 1e-3 mm step "
-              f"({R['tf']:.3f} s); counted as {R['ratio']:.2f} forward solves")
+    print(f"{NAME}: one gradient = {tg:.3f} s = {tg / tc:.2f} cold closures ({tc:.3f} s, "
+          f"from the placement) = {ratio:.2f} {'cold' if args.cold else 'warm'} closures "
+          f"after a 1e-3 mm step ({tf:.3f} s); counted as {ratio:.2f} forward solves")
     print("| method | iterations | forward | gradients | forward equivalents | wall s "
           "(incl. compile) | final objective | r | a | b |")
     print("|---|---|---|---|---|---|---|---|---|---|")
-    for m, R in runs.items():
-        res, r = R["res"], R["res"].records[-1]
-        print(f"| {NAMES[m]} | {r['iteration']} | {res.counts['forward']} | "
-              f"{res.counts['gradient']} | {R['eq'][-1]:.1f} | {R['wall']:.1f} "
-              f"({res.compile_s:.1f}) | {res.value:.6f} | {r['r']:.3f} | {r['a']:.3f} | "
-              f"{r['b']:.3f} |")
+    r = res.records[-1]
+    print(f"| {NAME} | {r['iteration']} | {res.counts['forward']} | {res.counts['gradient']} "
+          f"| {eq[-1]:.1f} | {wall:.1f} ({res.compile_s:.1f}) | {res.value:.6f} | "
+          f"{r['r']:.3f} | {r['a']:.3f} | {r['b']:.3f} |")
     print(f"| Nelder-Mead | {nm.nit} | {nm.nfev} | 0 | {nm.nfev} | {t_nm:.1f} | {f_nm:.6f} | "
           f"{nm.x[0]:.3f} | {nm.x[1]:.3f} | {nm.x[2]:.3f} |")
-    for m, R in runs.items():
-        res, eq = R["res"], R["eq"]
-        hit = [q for q, r in zip(eq, res.records) if r["objective"] <= f_nm * (1 + 1e-9)]
-        if hit:
-            print(f"to reach Nelder-Mead's final objective {f_nm:.6f}: {NAMES[m]} "
-                  f"{hit[0]:.1f} forward equivalents, Nelder-Mead {n_nm}: ratio "
-                  f"{n_nm / hit[0]:.1f}x (target >= 3x)")
-        else:
-            print(f"{NAMES[m]} did not reach Nelder-Mead's final objective {f_nm:.6f} "
-                  f"(its best {res.value:.6f})")
-            f_lb = res.value
-            if np.any(best <= f_lb * (1 + 1e-9)):
-                n_lb = int(np.argmax(best <= f_lb * (1 + 1e-9))) + 1
-                q = next(q for q, r in zip(eq, res.records)
-                         if r["objective"] <= f_lb * (1 + 1e-9))
-                print(f"  to reach its final objective {f_lb:.6f}: {q:.1f} forward "
-                      f"equivalents, Nelder-Mead {n_lb}: ratio {n_lb / q:.1f}x")
-        print(f"stopped: {NAMES[m]}: {res.reason}")
+    hit = [q for q, r in zip(eq, res.records) if r["objective"] <= f_nm * (1 + 1e-9)]
+    if hit:
+        print(f"to reach Nelder-Mead's final objective {f_nm:.6f}: {NAME} {hit[0]:.1f} "
+              f"forward equivalents, Nelder-Mead {n_nm}: ratio {n_nm / hit[0]:.1f}x "
+              f"(target >= 3x)")
+    else:
+        print(f"{NAME} did not reach Nelder-Mead's final objective {f_nm:.6f} "
+              f"(its best {res.value:.6f})")
+        f_lb = res.value
+        if np.any(best <= f_lb * (1 + 1e-9)):
+            n_lb = int(np.argmax(best <= f_lb * (1 + 1e-9))) + 1
+            q = next(q for q, r in zip(eq, res.records) if r["objective"] <= f_lb * (1 + 1e-9))
+            print(f"  to reach its final objective {f_lb:.6f}: {q:.1f} forward "
+                  f"equivalents, Nelder-Mead {n_lb}: ratio {n_lb / q:.1f}x")
+    print(f"stopped: {NAME}: {res.reason}")
     print(f"stopped: Nelder-Mead: {nm.message}")
     # the whole race: forward equivalents each needed to come within x % of the best
-    # objective any method found
-    f_best = min([f_nm] + [R["res"].value for R in runs.values()])
-    print(f"| within x % of the best objective ({f_best:.6f}) | "
-          + " | ".join(f"{NAMES[m]} fwd. eq. | ratio" for m in runs) + " | Nelder-Mead |")
-    print("|---|" + "---|---|" * len(runs) + "---|")
+    # objective either found
+    f_best = min(f_nm, res.value)
+    lb = np.array([r["objective"] for r in res.records])
+    print(f"| within x % of the best objective ({f_best:.6f}) | {NAME} fwd. eq. | ratio | "
+          "Nelder-Mead |")
+    print("|---|---|---|---|")
     for pct in (50, 10, 2, 1, 0.5, 0.2, 0.1, 0.05):
         lvl = f_best * (1 + pct / 100)
         b = int(np.argmax(best <= lvl)) + 1 if np.any(best <= lvl) else None
-        cells = []
-        for R in runs.values():
-            lb = np.array([r["objective"] for r in R["res"].records])
-            a = float(np.asarray(R["eq"])[np.argmax(lb <= lvl)]) if np.any(lb <= lvl) else None
-            cells += ["-" if a is None else f"{a:.1f}", f"{b / a:.1f}x" if a and b else "-"]
-        print(f"| {pct:g} | " + " | ".join(cells) + f" | {'-' if b is None else b} |")
-    # path dependence: a design's objective closed from other starts.  Each method's final
-    # design, and the first design with which it reached Nelder-Mead's final objective,
-    # closed from the run's final state, the start template's closed state, Nelder-Mead's
-    # final state and the placement (no warm start)
-    for m, R in runs.items():
-        res, ev = R["res"], R["ev"]
-        designs = [("final", res.rab)]
-        first = next((r for r in res.records if r["objective"] <= f_nm * (1 + 1e-9)), None)
-        if first is not None and first is not res.records[-1]:
-            designs.append((f"iteration {first['iteration']}",
-                            np.array([first["r"], first["a"], first["b"]])))
-        ev.warm_start = True        # --cold: the check itself must use the warm starts
-        for label, rab in designs:
-            own = ev.forward(rab, res.evaluation)
-            vals = []
-            for seed in (own, ev.forward(start), ev.forward(np.asarray(nm.x)), None):
-                e = ev.forward(rab, seed if seed is None or seed.converged else None)
-                vals.append(e.value if e.converged else float("nan"))
-            where = ", ".join(f"{v:.3f}" for v in rab)
-            print(f"objective at {NAMES[m]}'s {label} design ({where}), "
-                  f"closed from the run's final state, the start's, Nelder-Mead's final "
-                  f"state and the placement: {', '.join(f'{v:.6f}' for v in vals)} "
-                  f"(spread {np.nanmax(vals) - np.nanmin(vals):.1e})")
+        a = float(np.asarray(eq)[np.argmax(lb <= lvl)]) if np.any(lb <= lvl) else None
+        print(f"| {pct:g} | {'-' if a is None else f'{a:.1f}'} | "
+              f"{f'{b / a:.1f}x' if a and b else '-'} | {'-' if b is None else b} |")
+    # path dependence: the final design, and the first with which the run reached
+    # Nelder-Mead's final objective, closed from the run's final state, the start
+    # template's closed state, Nelder-Mead's final state and the placement
+    designs = [("final", res.rab)]
+    first = next((r for r in res.records if r["objective"] <= f_nm * (1 + 1e-9)), None)
+    if first is not None and first is not res.records[-1]:
+        designs.append((f"iteration {first['iteration']}",
+                        np.array([first["r"], first["a"], first["b"]])))
+    ev.warm_start = True        # --cold: the check itself must use the warm starts
+    for label, rab in designs:
+        own = ev.forward(rab, res.evaluation)
+        vals = []
+        for seed in (own, ev.forward(start), ev.forward(np.asarray(nm.x)), None):
+            e = ev.forward(rab, seed if seed is None or seed.converged else None)
+            vals.append(e.value if e.converged else float("nan"))
+        where = ", ".join(f"{v:.3f}" for v in rab)
+        print(f"objective at {NAME}'s {label} design ({where}), closed from the run's final "
+              f"state, the start's, Nelder-Mead's final state and the placement: "
+              f"{', '.join(f'{v:.6f}' for v in vals)} "
+              f"(spread {np.nanmax(vals) - np.nanmin(vals):.1e})")
     out = Path(__file__).parent / "results"
     out.mkdir(exist_ok=True)
     with open(out / f"optimize_history{'_cold' if args.cold else ''}.csv", "w") as fh:
         fh.write("method,forward_equivalents,objective\n")
-        for m, R in runs.items():
-            for q, r in zip(R["eq"], R["res"].records):
-                fh.write(f"{m},{q:.3f},{r['objective']:.9g}\n")
+        for q, r in zip(eq, res.records):
+            fh.write(f"lbfgs,{q:.3f},{r['objective']:.9g}\n")
         for i, v in enumerate(hist):
             fh.write(f"nelder-mead,{i + 1},{v:.9g}\n")
 

@@ -22,7 +22,6 @@ import functools
 import math
 
 import jax
-
 import jax.numpy as jnp
 import numpy as np
 import scipy.sparse.linalg as spla

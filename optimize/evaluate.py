@@ -110,6 +110,10 @@ class Evaluator:
         """(r, a, b, alpha) (4,) as a host array."""
         return np.concatenate([np.asarray(rab, np.float64), [float(self.scene.alpha)]])
 
+    def _theta_traced(self, rab):
+        """(r, a, b, alpha) (4,) inside a traced function of rab (3,)."""
+        return jnp.concatenate([rab, jnp.asarray([self.scene.alpha], rab.dtype)])
+
     def _build(self, rab):
         sc = self.scene.replace(r=float(rab[0]), a=float(rab[1]), b=float(rab[2]))
         lm = mesh_leaflet(sc.template(), sc.h)
@@ -255,10 +259,11 @@ class Evaluator:
             raise ParameterError("this evaluation belongs to an earlier mesh generation")
         th = self.theta(ev.rab)
         tpl = Template(*np.asarray(ev.rab, float), self.scene.alpha)
+        ref = np.asarray(self._ref_jit(th))          # the mapped leaflet, three times
         lm = dataclasses.replace(self.valve.leaflet, template=tpl,
-                                 points=np.asarray(self.design.tmap.points(*np.asarray(th))))
+                                 points=ref[: self.valve.nodes_per_leaflet])
         x_fix = np.asarray(self._x_fixed_jit(th))
-        valve = dataclasses.replace(self.valve, leaflet=lm, ref=np.asarray(self._ref_jit(th)),
+        valve = dataclasses.replace(self.valve, leaflet=lm, ref=ref,
                                     x_placed=x_fix, x_start=x_fix)
         xs, reports = {}, {}
         for s in ev.solves:
@@ -306,7 +311,7 @@ class Evaluator:
         """The objective from the closed states; with ``implicit`` the states enter through
         `equilibrium.implicit_state` (JAX adjoint), else as x = x* on free nodes (held) and
         the template's sutured positions on fixed nodes."""
-        th = jnp.concatenate([rab, jnp.asarray([self.scene.alpha], rab.dtype)])
+        th = self._theta_traced(rab)
         metrics = {}
         fixed = self.valve.problem.fixed[:, None]
         for load in self.loads:
@@ -326,7 +331,7 @@ class Evaluator:
 
     def _placed(self, rab, x):
         """The reference nodes of template (r, a, b) and x with its sutured nodes placed."""
-        th = jnp.concatenate([rab, jnp.asarray([self.scene.alpha], rab.dtype)])
+        th = self._theta_traced(rab)
         return self.design.ref(th), self.design.x_fixed(th, x_free=x)
 
     def _design_pullback(self, rab, x, g_ref, g_x):
@@ -353,7 +358,7 @@ class Evaluator:
     def _load_metrics(self, rab, load, x, plan):
         """The smooth metrics of one load, (k,) in METRICS order, with the sutured nodes at
         the template's positions (their direct dependence on (r, a, b))."""
-        th = jnp.concatenate([rab, jnp.asarray([self.scene.alpha], rab.dtype)])
+        th = self._theta_traced(rab)
         m = smooth_metrics(self.design.x_fixed(th, x_free=x), plan, self.eps)
         return jnp.stack([fac * m[key] for name, (ld, key, fac, _, _) in METRICS.items()
                           if ld == load])

@@ -219,7 +219,12 @@ def _areas(x, t):
 @_nan_through
 def smooth_gap_field(x, plan: SmoothPlan):
     """Distances (N, L) mm from each node to each leaflet, clamped at plan.clamp (own
-    leaflet and nodes without candidates -> clamp).  Differentiable in x.
+    leaflet and nodes without candidates -> clamp).  Differentiable in x (`_gap_field`)."""
+    return _gap_field(x, plan)
+
+
+def _gap_field(x, plan):
+    """`smooth_gap_field` without the NaN check (its callers make it).
 
     The minimum over the candidates is found without derivatives; the distance is then
     recomputed, with them, for the nearest candidate of each (node, leaflet) only: the
@@ -240,12 +245,11 @@ def smooth_gap_field(x, plan: SmoothPlan):
                                 plan.cand_slot, num_segments=S)[: n * L]
     found = first < C
     g = jnp.where(found, dist(jnp.where(found, first, 0), x), jnp.inf)
-    g = jnp.where(jnp.isnan(dmin[: n * L]), jnp.nan, g)        # a NaN in x propagates
     return jnp.minimum(g.reshape(n, L), plan.clamp)
 
 
 def _phi(x, plan):
-    return plan.g_c - smooth_gap_field(x, plan)
+    return plan.g_c - _gap_field(x, plan)
 
 
 def _zone(x, plan, phi, eps):
