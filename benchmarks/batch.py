@@ -4,11 +4,13 @@
     python benchmarks/batch.py --benchmark      # the benchmark mesh, h = 0.88 mm
     python benchmarks/batch.py --h 2 --E 0.5 0.8 1 1.25 2 --model neo-hookean
     python benchmarks/batch.py --sizes 1 16 64 256  # throughput against the batch size
+    python benchmarks/batch.py --h 2 --E 1 2 0.8 3 --max-steps 5000  # a straggler (0.8 stalls)
 
 One valve is built; the members are closed by `simulate_batch(scene, materials,
 valve=valve)` (one jitted vmap over the members, both loads), with the solver steps run
-member by member (``vectorize=False``, the CPU default) and vectorised (``vectorize=True``,
-the GPU default), and, for comparison, by one `simulate(scene, valve=valve)` per member
+member by member (``vectorize=False``, the CPU default), vectorised (``vectorize=True``,
+the GPU default, which hands the last members over to the member loop), vectorised to the
+end (``handoff=0``), and, for comparison, by one `simulate(scene, valve=valve)` per member
 (one compiled solve shared by all calls).  Each path runs twice:
 the first run compiles (JAX's compile time is reported separately), the second is timed
 after compilation.  "solve s" is the wall time of the closures of all members (both loads),
@@ -57,6 +59,8 @@ def main(argv=None):
     ap.add_argument("--E", type=float, nargs="+", default=[1.0, 1.25, 1.5, 2.0],
                     help="Young's moduli of the members, MPa (neo-Hookean, Gent: mu = E/3)")
     ap.add_argument("--nu", type=float, default=0.45, help="StVK Poisson ratio")
+    ap.add_argument("--max-steps", type=int, default=None,
+                    help="solver step limit per closure (default: the scene's)")
     ap.add_argument("--only-default", action="store_true",
                     help="run only this backend's default batch path (one compile less)")
     ap.add_argument("--sizes", type=int, nargs="+", default=None,
@@ -65,6 +69,8 @@ def main(argv=None):
     args = ap.parse_args(argv)
     h = BENCHMARK_H if args.benchmark else args.h
     scene = Scene(h=h, model=args.model)
+    if args.max_steps is not None:
+        scene = scene.replace(max_steps=args.max_steps)
     valve = V.build_valve(scene.load_root(), mesh_leaflet(scene.template(), h))
     if args.sizes:
         return scaling(scene, valve, args)
@@ -75,16 +81,18 @@ def main(argv=None):
           f"{scene.pressure:g} mmHg, rtol {scene.rtol:g}; {os.cpu_count()} CPU cores")
 
     rows, results = {}, {}
-    for name, vec in (("batch, member loop (CPU default)", False),
-                      ("batch, vectorised (GPU default)", True)):
-        if args.only_default and vec != (jax.default_backend() != "cpu"):
+    for name, vec, handoff in (("batch, member loop (CPU default)", False, None),
+                               ("batch, vectorised (GPU default)", True, None),
+                               ("batch, vectorised to the end (handoff=0)", True, 0)):
+        if args.only_default and (vec != (jax.default_backend() != "cpu") or handoff == 0):
             continue
         # the first call compiles, the second is timed
+        kw = dict(valve=valve, throw=False, vectorize=vec, handoff=handoff)
         t0 = time.perf_counter()
-        r0 = simulate_batch(scene, mats, valve=valve, throw=False, vectorize=vec)
+        r0 = simulate_batch(scene, mats, **kw)
         first = time.perf_counter() - t0
         t0 = time.perf_counter()
-        rb = simulate_batch(scene, mats, valve=valve, throw=False, vectorize=vec)
+        rb = simulate_batch(scene, mats, **kw)
         wall = time.perf_counter() - t0
         rows[name] = dict(compile=r0.timings["compile"], first=first, solve=rb.timings["solve"],
                           wall=wall, steps=sum(s.steps for m in rb for s in m.solves),

@@ -20,7 +20,9 @@ the members that need them (`jaxvalve.batching`).  Two ways to run the steps:
 * ``vectorize=True`` (default on GPU): the steps of all members are one array program,
   and so are the rebuilds (`batching.branches("select")`: run for the whole batch when any
   member is due, each member keeping its own branch), so a step's cost hardly grows with
-  the batch on a GPU.  XLA orders a few sums differently for batched arrays, so members
+  the batch on a GPU.  Once few members are left (``handoff``, default max(1, B // 16)),
+  the steps go on member by member, so a straggler does not pay a batch's step to the
+  end.  XLA orders a few sums differently for batched arrays, so members
   differ from sequential runs by rounding (1e-16), which FIRE's path can amplify to ~1e-3
   mm at rtol 1e-4 (the size of the path dependence of the closed state; README,
   "Accuracy").  On this 2-core CPU it is slower than the member loop (`benchmarks/batch.py`).
@@ -266,18 +268,21 @@ class BatchResult:
 
 
 # ------------------------------------------------------------------------------ the solve
-def _solve(solver, problem, params, x0, nbrs, skin, loop):
+def _solve(solver, problem, params, x0, nbrs, skin, loop, handoff=0):
     """`equilibrium._run` (forward only): (x, result, stats, pair list); with ``loop``
-    the solver's steps run member by member (`iterate(members_apart=True)`)."""
+    the solver's steps run member by member (`iterate(members_apart=True)`), else
+    vectorised until at most ``handoff`` members run (`iterate(handoff=...)`)."""
     system, args = _make_args(problem, params, x0, nbrs, solver, skin)
     steps = evals = hvps = jnp.asarray(0)
     y = x0
     for warm in getattr(solver, "warm_start", None) or ():
-        y, args, st, _, n = iterate(warm, system, y, args, members_apart=loop)
+        y, args, st, _, n = iterate(warm, system, y, args, members_apart=loop,
+                                    handoff=handoff)
         args = system.update(y, args)
         s = warm.stats(st)
         steps, evals, hvps = steps + n, evals + s["force_evals"], hvps + s["hvps"]
-    y, args, st, result, n = iterate(solver, system, y, args, members_apart=loop)
+    y, args, st, result, n = iterate(solver, system, y, args, members_apart=loop,
+                                     handoff=handoff)
     s = solver.stats(st)
     res = relative_residual(system, y, args, st["F"] if "F" in st else None)
     if getattr(solver, "lazy_force", False):   # no step ran: F(x0) was never evaluated
@@ -287,7 +292,8 @@ def _solve(solver, problem, params, x0, nbrs, skin, loop):
     return y, result, stats, args["nbrs"]
 
 
-def _member(material, *, solver, problem, base, x0, nbrs, pressures, skin, lazy, loop):
+def _member(material, *, solver, problem, base, x0, nbrs, pressures, skin, lazy, loop,
+            handoff=0):
     """Both closures of one member (vmapped): pressures[0] from x0, then pressures[1] from
     that state.  A `lax.scan` over the two loads, so the solve is traced and compiled once
     (as `simulate`'s two calls share one compiled solve)."""
@@ -297,7 +303,8 @@ def _member(material, *, solver, problem, base, x0, nbrs, pressures, skin, lazy,
         nb = nbrs
         if params.contact is not None and not lazy:
             nb = update_pairs(nbrs, x, problem, skin, params.contact)   # built at x
-        y, result, stats, nb_out = _solve(solver, problem, params, x, nb, skin, loop)
+        y, result, stats, nb_out = _solve(solver, problem, params, x, nb, skin, loop,
+                                          handoff)
         zero = jnp.asarray(0, jnp.int32)
         ov = dict(base_overflow=jnp.asarray(False), count=zero, n_scan=zero, max_group=zero,
                   soft_overflow=jnp.asarray(False), soft_count=zero)
@@ -313,8 +320,9 @@ def _member(material, *, solver, problem, base, x0, nbrs, pressures, skin, lazy,
     return out
 
 
-@functools.partial(jax.jit, static_argnames=("solver", "skin", "lazy", "loop"))
-def _close_batch(materials, problem, base, x0, nbrs, pressures, *, solver, skin, lazy, loop):
+@functools.partial(jax.jit, static_argnames=("solver", "skin", "lazy", "loop", "handoff"))
+def _close_batch(materials, problem, base, x0, nbrs, pressures, *, solver, skin, lazy, loop,
+                 handoff=0):
     f = functools.partial(_member, solver=solver, problem=problem, base=base, x0=x0,
                           nbrs=nbrs, pressures=pressures, skin=skin, lazy=lazy, loop=False)
     if jax.tree_util.tree_leaves(materials)[0].shape[0] == 1:
@@ -323,7 +331,8 @@ def _close_batch(materials, problem, base, x0, nbrs, pressures, *, solver, skin,
         return jax.tree_util.tree_map(lambda a: a[None], one)
     # vectorised: the rebuild branches too run as one array program (`batching.branches`)
     with branches("members" if loop else "select"):
-        return jax.vmap(functools.partial(f, loop=loop))(materials)
+        return jax.vmap(functools.partial(f, loop=loop, handoff=0 if loop else handoff))(
+            materials)
 
 
 def _stale(contact, problem, x0, skin, capacity=None, soft_capacity=None):
@@ -348,7 +357,8 @@ def _capacities(nbrs):
     return nbrs.capacity, None
 
 
-def _run_batch(members, stacked, valve, base, pressures, solver, skin, loop, say):
+def _run_batch(members, stacked, valve, base, pressures, solver, skin, loop, say,
+               handoff=0):
     """The batched call, with capacity retries: returns (stages: 2 dicts of (B, ...) NumPy
     arrays, compile_s, wall_s, retries).  Members whose contact pair list overflowed are
     solved again, alone, with grown capacities (as `equilibrium.solve` does), up to
@@ -369,7 +379,8 @@ def _run_batch(members, stacked, valve, base, pressures, solver, skin, loop, say
         with compile_timer() as ct:
             t0 = time.perf_counter()
             out = _close_batch(sub, problem, base, x0, nbrs, pressures, solver=solver,
-                               skin=float(skin), lazy=bool(lazy), loop=loop)
+                               skin=float(skin), lazy=bool(lazy), loop=loop,
+                               handoff=int(handoff))
             out = jax.device_get(jax.block_until_ready(out))
             wall = time.perf_counter() - t0
         compile_s += min(ct.seconds, wall)
@@ -416,7 +427,7 @@ def _run_batch(members, stacked, valve, base, pressures, solver, skin, loop, say
 
 def simulate_batch(scene: Scene | None = None, materials=None, *, valve=None,
                    progress: Callable[[str], None] | None = None, throw: bool = True,
-                   vectorize: bool | None = None) -> BatchResult:
+                   vectorize: bool | None = None, handoff: int | None = None) -> BatchResult:
     """Close the valve of ``scene`` under every material of ``materials`` (one batch).
 
     scene: geometry (root, template, h), loads (he_pressure, pressure), thickness, fibre
@@ -438,7 +449,16 @@ def simulate_batch(scene: Scene | None = None, materials=None, *, valve=None,
     not pay, True on GPU.  Vectorised members differ from sequential runs by rounding
     (XLA orders some sums differently), which the solver's path can amplify to ~1e-3 mm
     at rtol 1e-4.
+    handoff (vectorised steps only): once at most this many members are still running, the
+    steps go on member by member (`solvers.base.iterate`), so that a straggler's last
+    steps cost one member's step instead of the whole batch's.  0: never; default
+    max(1, B // 16), from the GPU step costs of `benchmarks/batch.py` (a vectorised step
+    of 16 members cost 2-3 single steps, of 64 members 4-7).
     """
+    if handoff is not None and (isinstance(handoff, bool) or not isinstance(handoff, int)
+                                or handoff < 0):
+        raise ParameterError(f"handoff must be an integer >= 0 (members still running when "
+                             f"the steps go on member by member; 0: never); got {handoff!r}")
     scene = Scene() if scene is None else scene
     say = progress or _quiet
     t_all = time.perf_counter()
@@ -462,11 +482,13 @@ def simulate_batch(scene: Scene | None = None, materials=None, *, valve=None,
         vectorize = jax.default_backend() != "cpu"
     loop = not vectorize
     B = len(members)
+    handoff = max(1, B // 16) if handoff is None else handoff
     say(f"closing {B} member{'s' * (B != 1)} ({model}) at {scene.he_pressure:g} then "
         f"{scene.pressure:g} mmHg in one batch ({scene.solver} solver, {scene.contact} "
         "contact)")
     stages, compile_s, wall_s, retries = _run_batch(members, stacked, valve, base, pressures,
-                                                    solver, valve.skin, loop, say)
+                                                    solver, valve.skin, loop, say,
+                                                    handoff=handoff)
     solve_s = max(wall_s - compile_s, 0.0)
     n_ok = int(sum(np.all([st["result"] == RESULTS.successful for st in stages], axis=0)))
     say(f"  {n_ok}/{B} converged; {solve_s:.2f} s (+{compile_s:.1f} s compile), "

@@ -31,6 +31,8 @@ in a sequential run:
 * `batch_max(n)`: the largest n of the batch, unbatched (loop trip counts over padded
   rows; the prefix length of a `lax.switch`).
 * `batch_any(pred)`: the OR over the batch, unbatched.
+* `batch_sum(n)`: the sum over the batch, unbatched (how many members are still running,
+  for the straggler hand-off of `solvers.base.iterate(handoff=k)`).
 
 Each use in the package is exact: a member's values do not depend on the batch it is in.
 A longer prefix or more trips over padding give the same numbers (padding slots are masked
@@ -45,7 +47,7 @@ import contextlib
 import jax
 import jax.numpy as jnp
 
-__all__ = ["batch_any", "batch_max", "branches", "cond_each", "each_active"]
+__all__ = ["batch_any", "batch_max", "batch_sum", "branches", "cond_each", "each_active"]
 
 _POLICIES = ("members", "select")
 _policy = ["members"]
@@ -54,8 +56,9 @@ _policy = ["members"]
 @contextlib.contextmanager
 def branches(policy: str):
     """Within this block, `cond_each` traced under vmap runs its true branch by ``policy``:
-    "members" or "select" (module docstring).  Read at trace time: a jitted caller must
-    take the policy as a static argument, so that each policy gets its own trace."""
+    "members" or "select" (module docstring).  Read when `cond_each` is called (traced),
+    so two branches of one program may use different policies; a jitted caller must take
+    the policy as a static argument, so that each policy gets its own trace."""
     if policy not in _POLICIES:
         raise ValueError(f"branches: policy must be one of {_POLICIES}; got {policy!r}")
     old, _policy[0] = _policy[0], policy
@@ -74,7 +77,7 @@ def _batch_reduce(reduce, doc):
 
     @f.def_vmap
     def rule(axis_size, in_batched, x):
-        return (reduce(x, axis=0) if in_batched[0] else x), False
+        return (reduce(x, axis=0).astype(x.dtype) if in_batched[0] else x), False
 
     return f
 
@@ -83,6 +86,9 @@ batch_any = _batch_reduce(jnp.any, "pred (a bool array) itself; under vmap, the 
                                    "batch (unbatched).")
 batch_max = _batch_reduce(jnp.max, "n itself; under vmap, the maximum over the batch "
                                    "(unbatched).")
+batch_sum = _batch_reduce(jnp.sum, "n itself; under vmap, the sum over the batch (unbatched): "
+                                   "with an int n = pred, the number of members for which "
+                                   "pred is True.")
 
 
 def _axes(batched):
@@ -114,6 +120,7 @@ def cond_each(pred, true_fn, false_fn, *operands):
     """``lax.cond(pred, true_fn, false_fn, *operands)``; under vmap each member takes its
     own branch, the true branch computed only for the members that need it (see the
     module docstring).  pred: a scalar bool per member; false_fn should be cheap."""
+    policy = _policy[0]
     t_run, t_consts = _closed(true_fn, operands)
     f_run, f_consts = _closed(false_fn, operands)
 
@@ -134,7 +141,7 @@ def cond_each(pred, true_fn, false_fn, *operands):
             out = jax.lax.cond(pred, lambda *o: _vmap(t_fn, o_batched, o, axis_size),
                                lambda *o: _vmap(f_fn, o_batched, o, axis_size), *ops)
             return out, jax.tree_util.tree_map(lambda _: True, out)
-        if _policy[0] == "select":
+        if policy == "select":
             def both(*o):
                 t = _vmap(t_fn, o_batched, o, axis_size)
                 f = _vmap(f_fn, o_batched, o, axis_size)
@@ -194,16 +201,19 @@ def each_active(pred, fn, *carry, shared=()):
         pick = lambda tree, batched, i: jax.tree_util.tree_map(
             lambda a, b: a[i] if b else a, tree, batched)
 
-        def member(i, carry):
-            # slice, step under a cond, write back: the batched carry is only ever updated
-            # in place (a cond over the whole carry made XLA copy it for every member)
+        # a loop over the members whose pred is True only (a straggler alone costs one
+        # member's step, not a pass over the batch)
+        which = jnp.nonzero(pred, size=axis_size, fill_value=0)[0]
+
+        def member(k, carry):
+            # slice, step, write back: the batched carry is only ever updated in place (a
+            # cond over the whole carry made XLA copy it for every member)
+            i = which[k]
             xi = jax.tree_util.tree_map(lambda a: a[i], carry)
-            new = jax.lax.cond(
-                pred[i], lambda c, s, *x: run(pick(c, c_b, i), *x, *pick(s, s_b, i)),
-                lambda c, s, *x: x, consts, shared, *xi)
+            new = run(pick(consts, c_b, i), *xi, *pick(shared, s_b, i))
             return jax.tree_util.tree_map(lambda a, v: a.at[i].set(v), carry, new)
 
-        out = jax.lax.fori_loop(0, axis_size, member, carry)
+        out = jax.lax.fori_loop(0, jnp.sum(pred, dtype=jnp.int32), member, carry)
         return out, jax.tree_util.tree_map(lambda _: True, out)
 
     return f(jnp.asarray(pred), consts, tuple(shared), *carry)

@@ -128,6 +128,9 @@ def test_bad_materials_are_rejected_with_the_member_and_parameter():
         stack_materials({"E": [1.0]}, template=Gent())
     with pytest.raises(ParameterError, match="same number of values"):
         stack_materials({"mu": [1.0, 2.0], "Jm": [2.3]}, template=Gent())
+    for bad in (-1, 1.5, True, "2"):
+        with pytest.raises(ParameterError, match=r"handoff must be an integer >= 0"):
+            simulate_batch(SCENE, stvk(1.0), handoff=bad)
 
 
 def test_materials_as_a_dict_over_the_template():
@@ -269,7 +272,8 @@ def test_vectorised_batch_agrees_with_sequential_and_one_member_is_a_single_solv
     """The GPU default path on this CPU.  vectorize=True runs the members' steps, and their
     pair-list rebuilds (`batching.branches("select")`), as one array program: members then
     differ from sequential runs by rounding, amplified along FIRE's path, but each is an
-    equilibrium to rtol.  A batch of one runs the unbatched single-solve program."""
+    equilibrium to rtol (the member that finishes last takes its last steps alone, by the
+    default hand-off).  A batch of one runs the unbatched single-solve program."""
     first, seq = runs["first"], runs["seq"]
     vec = simulate_batch(SCENE, stvk(E_FIRST[0], E_FIRST[2]), valve=first.valve,
                          vectorize=True)

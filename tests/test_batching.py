@@ -54,3 +54,65 @@ def test_unknown_policy_is_rejected():
     with pytest.raises(ValueError, match="policy must be one of"):
         with branches("gpu"):
             pass
+
+
+# ------------------------------------------------------------------ straggler hand-off
+@jax.custom_batching.custom_vmap
+def _vectorised(x):
+    """0 in an unbatched program; 1 where the operation runs vectorised over a batch."""
+    return jnp.zeros_like(x)
+
+
+@_vectorised.def_vmap
+def _vectorised_rule(axis_size, in_batched, x):
+    return jnp.ones_like(x), in_batched[0]
+
+
+class _Contract:
+    """A toy solver: y <- (1 - k) y until |y| < 1e-6 (k per member, in args); its state
+    counts the steps that ran vectorised."""
+
+    max_steps = 1000
+
+    def init(self, system, y, args):
+        return {"F": -args["k"] * y, "vec": jnp.zeros((), jnp.int32)}
+
+    def step(self, system, y, args, state):
+        y = y - args["k"] * y
+        return y, {"F": -args["k"] * y, "vec": state["vec"] + _vectorised(state["vec"])}
+
+    def terminate(self, system, y, args, state):
+        done = jnp.linalg.norm(y) < 1e-6
+        return done, jnp.where(done, 0, 1)
+
+
+def _contract(y0, k, handoff):
+    from types import SimpleNamespace
+
+    from jaxvalve.solvers.base import iterate
+    system = SimpleNamespace(update=lambda y, args: args)
+    args = {"k": k, "nbrs": jnp.zeros(()), "f0": jnp.asarray(-1.0)}
+    y, _, state, result, n = iterate(_Contract(), system, y0, args, handoff=handoff)
+    return y, n, result, state["vec"]
+
+
+@pytest.mark.parametrize("handoff", [0, 1, 2, 3])
+def test_vectorised_loop_hands_the_last_members_over_to_the_member_loop(handoff):
+    """iterate(handoff=h) under vmap: the steps run vectorised while more than h members
+    are running, then member by member (a straggler's last steps are its own); every member
+    ends exactly as when solved alone."""
+    y0 = jnp.array([[1.0, 2.0], [0.5, -1.0], [3.0, 0.1]])
+    k = jnp.array([0.5, 0.2, 0.05])                   # 22, 66 and 290 steps
+    y, n, result, vec = jax.jit(jax.vmap(lambda y, k: _contract(y, k, handoff)))(y0, k)
+    for i in range(3):
+        yi, ni, ri, vi = jax.jit(lambda y, k: _contract(y, k, 0))(y0[i], k[i])
+        np.testing.assert_array_equal(y[i], yi)
+        assert int(n[i]) == int(ni) and int(result[i]) == int(ri) == 0 and int(vi) == 0
+    steps = np.asarray(n)
+    assert len(set(steps.tolist())) == 3 and steps.max() > 250
+    # trips with more than `handoff` members running were vectorised, the rest were not
+    running = [int(np.sum(steps > t)) for t in range(int(steps.max()))]
+    want = [sum(1 for t in range(s) if running[t] > handoff) for s in steps]
+    if handoff == 0:
+        want = list(steps)                           # the plain vectorised loop
+    np.testing.assert_array_equal(vec, want)

@@ -13,7 +13,7 @@ from typing import Any, Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from ..batching import batch_any, each_active
+from ..batching import batch_any, batch_sum, branches, each_active
 
 
 class RESULTS(enum.IntEnum):
@@ -131,7 +131,7 @@ def _set_f0(args, F0):
 _STEP_ARGS = ("nbrs", "f0")
 
 
-def iterate(solver, system, y0, args, *, members_apart: bool = False):
+def iterate(solver, system, y0, args, *, members_apart: bool = False, handoff: int = 0):
     """Run ``solver`` from y0 in one `lax.while_loop`.  Returns (y, args, state, result, n).
     ``args`` must be current for y0 (its pair list built or updated there).
 
@@ -140,7 +140,10 @@ def iterate(solver, system, y0, args, *, members_apart: bool = False):
     vectorised program.  members_apart: each step runs member by member, for the members
     still running (`batching.each_active`): the same compiled step as a single solve, so a
     member's result is that of a single solve to the last bit, and finished members cost
-    nothing.  Unbatched, both give the single solve."""
+    nothing.  handoff (vectorised steps only): once at most ``handoff`` members are still
+    running, the steps go on member by member, so that a straggler's last steps cost what
+    they cost alone, not a whole batch's vectorised step (0: never).  Unbatched, all of
+    these give the single solve."""
     state = solver.init(system, y0, args)
     lazy = getattr(solver, "lazy_force", False)   # F(y0) comes from the first step
     if "f0" in args and not lazy:  # residual scale at P = 0: the initial force
@@ -153,7 +156,7 @@ def iterate(solver, system, y0, args, *, members_apart: bool = False):
         live = (~done) & (n < solver.max_steps)
         # member by member, the loop's predicate is one for the batch: vmap then selects
         # no carry at each step, and the body skips the members that have stopped
-        return batch_any(live) if members_apart else live
+        return batch_any(live) if apart else live
 
     def update(y, args, done, y_upd):
         # A vectorised batch also steps the members that have finished (and vmap discards
@@ -174,26 +177,58 @@ def iterate(solver, system, y0, args, *, members_apart: bool = False):
     # batch (a rebuild runs for the members that need one, `batching.cond_each`); then the
     # solver step runs member by member, each member's state copied in and out, its pair
     # list read in place; the other args are loop constants, not carried.
-    fixed = {k: v for k, v in args.items() if k not in _STEP_ARGS} if members_apart else {}
+    apart = members_apart or handoff > 0
+    fixed = {k: v for k, v in args.items() if k not in _STEP_ARGS} if apart else {}
+    strip = lambda a: {k: v for k, v in a.items() if k not in fixed}
 
-    def body(c):
+    def one_by_one(c):
         y, args, state, n, done, result, y_upd = c
-        if members_apart:
-            live = (~done) & (n < solver.max_steps)
-            args, y_upd = update(y, {**fixed, **args}, ~live, y_upd)
+        live = (~done) & (n < solver.max_steps)
+        args, y_upd = update(y, {**fixed, **args}, ~live, y_upd)
 
-            def own(y, f0, state, done, result, nbrs):
-                a = dict(fixed, nbrs=nbrs, f0=f0)
-                y, a, state, done, result = advance(y, a, state, done)
-                return y, a["f0"], state, done, result
+        def own(y, f0, state, done, result, nbrs):
+            a = dict(fixed, nbrs=nbrs, f0=f0)
+            y, a, state, done, result = advance(y, a, state, done)
+            return y, a["f0"], state, done, result
 
-            y, f0, state, done, result = each_active(
-                live, own, y, args["f0"], state, done, result, shared=(args["nbrs"],))
-            args = {k: v for k, v in dict(args, f0=f0).items() if k not in fixed}
-            return y, args, state, n + live, done, result, y_upd
+        y, f0, state, done, result = each_active(
+            live, own, y, args["f0"], state, done, result, shared=(args["nbrs"],))
+        return y, strip(dict(args, f0=f0)), state, n + live, done, result, y_upd
+
+    def vectorised(c):
+        y, args, state, n, done, result, y_upd = c
         args, y_upd = update(y, args, done, y_upd)
         y, args, state, done, result = advance(y, args, state, done)
         return y, args, state, n + 1, done, result, y_upd
+
+    def vectorised_kept(c):
+        # `vectorised` for a loop whose predicate is one for the batch: a member that has
+        # stopped keeps its carry (what vmap's own select does in the vectorised loop)
+        y, args, state, n, done, result, y_upd = c
+        live = (~done) & (n < solver.max_steps)
+        a, y_upd = update(y, {**fixed, **args}, ~live, y_upd)
+        new = advance(y, a, state, done)
+        keep = lambda u, v: jax.tree_util.tree_map(lambda p, q: jnp.where(live, p, q), u, v)
+        y, a, state, done, result = keep(new, (y, a, state, done, result))
+        return y, strip(a), state, n + live, done, result, y_upd
+
+    def handing_off(c):
+        # vectorised while more than ``handoff`` members run (rebuilds as one array program,
+        # `batching.branches("select")`), then member by member (rebuilds per member)
+        _, _, _, n, done, _, _ = c
+        few = batch_sum(((~done) & (n < solver.max_steps)).astype(jnp.int32)) <= handoff
+
+        def alone(c):
+            with branches("members"):
+                return one_by_one(c)
+
+        def together(c):
+            with branches("select"):
+                return vectorised_kept(c)
+
+        return jax.lax.cond(few, alone, together, c)
+
+    body = one_by_one if members_apart else handing_off if handoff > 0 else vectorised
 
     carried = {k: v for k, v in args.items() if k not in fixed}
     y, args, state, n, done, result, _ = jax.lax.while_loop(
