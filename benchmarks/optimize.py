@@ -165,7 +165,8 @@ def main(argv=None):
             vals.append(e.value if e.converged else float("nan"))
         placed[label] = vals[-1]
         where = ", ".join(f"{v:.3f}" for v in rab)
-        print(f"objective at {label if mine else NAME + chr(39) + 's ' + label} design "
+        who = label if mine else f"{NAME}'s {label}"
+        print(f"objective at {who} design "
               f"({where}), closed from the run's final state, the start's, Nelder-Mead's "
               f"final state and the placement: {', '.join(f'{v:.6f}' for v in vals)} "
               f"(spread {np.nanmax(vals) - np.nanmin(vals):.1e})")
