@@ -102,6 +102,14 @@ def _vmap(fn, batched, ops, size):
     return jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (size,) + a.shape), fn(*ops))
 
 
+def _for_each_true(pred, body, acc):
+    """``acc = body(i, acc)`` for each index i at which pred (B,) is True, in order: a loop
+    over those members only (none: no trip, no copy; a straggler alone: one trip)."""
+    which = jnp.nonzero(pred, size=pred.shape[0], fill_value=0)[0]
+    return jax.lax.fori_loop(0, jnp.sum(pred, dtype=jnp.int32),
+                             lambda k, a: body(which[k], a), acc)
+
+
 def _closed(fn, operands):
     """fn as a function of (consts, *operands) with no closed-over traced values, and the
     consts: the values fn closes over become explicit inputs, so that a batching rule,
@@ -152,11 +160,8 @@ def cond_each(pred, true_fn, false_fn, *operands):
                                lambda *o: _vmap(f_fn, o_batched, o, axis_size), *ops)
             return out, jax.tree_util.tree_map(lambda _: True, out)
         acc = _vmap(f_fn, o_batched, ops, axis_size)
-        # a loop over the members whose pred is True only (none: no trip, no copy)
-        which = jnp.nonzero(pred, size=axis_size, fill_value=0)[0]
 
-        def member(k, acc):
-            i = which[k]
+        def member(i, acc):
             # member i's operands are sliced out here and enter a branch (pred[i] is True)
             # as its inputs, so the branch is compiled as it is in an unbatched program
             ops_i = tuple(jax.tree_util.tree_map(lambda o, b: o[i] if b else o, op, b)
@@ -165,7 +170,7 @@ def cond_each(pred, true_fn, false_fn, *operands):
                 lambda a: a[i], acc), *ops_i)
             return jax.tree_util.tree_map(lambda a, v: a.at[i].set(v), acc, new)
 
-        acc = jax.lax.fori_loop(0, jnp.sum(pred, dtype=jnp.int32), member, acc)
+        acc = _for_each_true(pred, member, acc)
         return acc, jax.tree_util.tree_map(lambda _: True, acc)
 
     return f(jnp.asarray(pred), t_consts, f_consts, *operands)
@@ -201,19 +206,14 @@ def each_active(pred, fn, *carry, shared=()):
         pick = lambda tree, batched, i: jax.tree_util.tree_map(
             lambda a, b: a[i] if b else a, tree, batched)
 
-        # a loop over the members whose pred is True only (a straggler alone costs one
-        # member's step, not a pass over the batch)
-        which = jnp.nonzero(pred, size=axis_size, fill_value=0)[0]
-
-        def member(k, carry):
+        def member(i, carry):
             # slice, step, write back: the batched carry is only ever updated in place (a
             # cond over the whole carry made XLA copy it for every member)
-            i = which[k]
             xi = jax.tree_util.tree_map(lambda a: a[i], carry)
             new = run(pick(consts, c_b, i), *xi, *pick(shared, s_b, i))
             return jax.tree_util.tree_map(lambda a, v: a.at[i].set(v), carry, new)
 
-        out = jax.lax.fori_loop(0, jnp.sum(pred, dtype=jnp.int32), member, carry)
+        out = _for_each_true(pred, member, carry)
         return out, jax.tree_util.tree_map(lambda _: True, out)
 
     return f(jnp.asarray(pred), consts, tuple(shared), *carry)

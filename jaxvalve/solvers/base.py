@@ -207,10 +207,12 @@ def iterate(solver, system, y0, args, *, members_apart: bool = False, handoff: i
         y, args, state, n, done, result, y_upd = c
         live = (~done) & (n < solver.max_steps)
         a, y_upd = update(y, {**fixed, **args}, ~live, y_upd)
-        new = advance(y, a, state, done)
+        y2, a2, state2, done2, result2 = advance(y, a, state, done)
+        # select the carried entries only (the loop constants are not carried)
         keep = lambda u, v: jax.tree_util.tree_map(lambda p, q: jnp.where(live, p, q), u, v)
-        y, a, state, done, result = keep(new, (y, a, state, done, result))
-        return y, strip(a), state, n + live, done, result, y_upd
+        y, a, state, done, result = keep((y2, strip(a2), state2, done2, result2),
+                                         (y, strip(a), state, done, result))
+        return y, a, state, n + live, done, result, y_upd
 
     def handing_off(c):
         # vectorised while more than ``handoff`` members run (rebuilds as one array program,
