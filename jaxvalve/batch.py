@@ -13,16 +13,16 @@ keeps a finished member's state.  The decisions inside it (pair-list rebuilds, t
 energy's prefix length, FIRE's mass refresh) are taken per member but computed only for
 the members that need them (`jaxvalve.batching`).  Two ways to run the steps:
 
-* ``vectorize=False`` (default on CPU): each step runs member by member inside the batched
-  loop (`iterate(members_apart=True)`), with the same compiled code as a single solve.  A
+* ``vectorize=False`` (default on CPU): each member runs its own solver loop, one after
+  the other (`iterate(members_apart=True)`), the compiled loop of a single solve.  A
   member's result is then `simulate`'s to the last bit, whatever the batch (tested), and
   finished members cost nothing.
 * ``vectorize=True`` (default on GPU): the steps of all members are one array program,
   and so are the rebuilds (`batching.branches("select")`: run for the whole batch when any
   member is due, each member keeping its own branch), so a step's cost hardly grows with
   the batch on a GPU.  Once few members are left (``handoff``, default max(1, B // 16)),
-  the steps go on member by member, so a straggler does not pay a batch's step to the
-  end.  XLA orders a few sums differently for batched arrays, so members
+  each of them finishes in its own single-solve loop, so a straggler does not pay a
+  batch's step to the end.  XLA orders a few sums differently for batched arrays, so members
   differ from sequential runs by rounding (1e-16), which FIRE's path can amplify to ~1e-3
   mm at rtol 1e-4 (the size of the path dependence of the closed state; README,
   "Accuracy").  On this 2-core CPU it is slower than the member loop (`benchmarks/batch.py`).
@@ -270,8 +270,8 @@ class BatchResult:
 # ------------------------------------------------------------------------------ the solve
 def _solve(solver, problem, params, x0, nbrs, skin, loop, handoff=0):
     """`equilibrium._run` (forward only): (x, result, stats, pair list); with ``loop``
-    the solver's steps run member by member (`iterate(members_apart=True)`), else
-    vectorised until at most ``handoff`` members run (`iterate(handoff=...)`)."""
+    each member runs its own solver loop (`iterate(members_apart=True)`), else the steps
+    are vectorised until at most ``handoff`` members run (`iterate(handoff=...)`)."""
     system, args = _make_args(problem, params, x0, nbrs, solver, skin)
     steps = evals = hvps = jnp.asarray(0)
     y = x0
@@ -443,22 +443,22 @@ def simulate_batch(scene: Scene | None = None, materials=None, *, valve=None,
     ``solution`` is the `BatchResult`); with throw=False the result is returned and
     ``result.failed`` lists them, each with its residual in ``member.solves``.
     vectorize: run the solver steps of all members as one vectorised array program (True),
-    or member by member inside the batched loop (False: each member then runs the same
-    compiled step as a single `simulate`, so its result is the sequential one to the last
-    bit, and finished members cost nothing).  Default: False on CPU, where vectorising does
+    or each member's solver loop in turn (False: each member then runs the same compiled
+    loop as a single `simulate`, so its result is the sequential one to the last bit, and
+    finished members cost nothing).  Default: False on CPU, where vectorising does
     not pay, True on GPU.  Vectorised members differ from sequential runs by rounding
     (XLA orders some sums differently), which the solver's path can amplify to ~1e-3 mm
     at rtol 1e-4.
-    handoff (vectorised steps only): once at most this many members are still running, the
-    steps go on member by member (`solvers.base.iterate`), so that a straggler's last
-    steps cost one member's step instead of the whole batch's.  0: never; default
-    max(1, B // 16), from the GPU step costs of `benchmarks/batch.py` (a vectorised step
-    of 16 members cost 2-3 single steps, of 64 members 4-7).
+    handoff (vectorised steps only): once at most this many members are still running,
+    each of them finishes in its own single-solve loop (`solvers.base.iterate`), so that a
+    straggler's last steps cost one member's step instead of the whole batch's.  0: never;
+    default max(1, B // 16), from the GPU step costs of `benchmarks/batch.py` (a vectorised
+    step of 16 members cost 2-3 single steps, of 64 members 4-7).
     """
     if handoff is not None and (isinstance(handoff, bool) or not isinstance(handoff, int)
                                 or handoff < 0):
         raise ParameterError(f"handoff must be an integer >= 0 (members still running when "
-                             f"the steps go on member by member; 0: never); got {handoff!r}")
+                             f"each finishes in its own loop; 0: never); got {handoff!r}")
     scene = Scene() if scene is None else scene
     say = progress or _quiet
     t_all = time.perf_counter()

@@ -22,12 +22,12 @@ in a sequential run:
   member keeps its own branch's value (one array program whatever the batch size, for a
   GPU, where the member loop made a step's cost grow linearly with the batch).  Used for
   the pair-list rebuilds and FIRE's mass refresh.
-* `each_active(pred, fn, *carry)`: a loop step ``fn`` run member by member, for the
-  members whose pred is True, updating the batched carry in place
-  (`solvers.base.iterate(members_apart=True)`).  Each member's operands are sliced out
-  before they enter ``fn``, so ``fn`` is compiled as in an unbatched program and computes
-  the same numbers as a single solve, bit for bit (a vectorised step does not: XLA orders
-  some sums differently for batched arrays).
+* `each_active(pred, fn, *carry)`: ``fn`` run member by member, for the members whose
+  pred is True, updating the batched carry in place (`solvers.base.iterate`: there fn is
+  a member's whole solver loop).  Each member's operands are sliced out before they enter
+  ``fn``, so ``fn`` is compiled as in an unbatched program and computes the same numbers
+  as a single solve, bit for bit (a vectorised step does not: XLA orders some sums
+  differently for batched arrays).
 * `batch_max(n)`: the largest n of the batch, unbatched (loop trip counts over padded
   rows; the prefix length of a `lax.switch`).
 * `batch_any(pred)`: the OR over the batch, unbatched.
@@ -176,47 +176,44 @@ def cond_each(pred, true_fn, false_fn, *operands):
     return f(jnp.asarray(pred), t_consts, f_consts, *operands)
 
 
-def each_active(pred, fn, *carry, shared=()):
-    """``fn(*carry, *shared) if pred else carry``, where fn returns carry's structure (a
-    loop step; ``shared``: inputs it only reads).  Under vmap, fn runs member by member,
-    only for the members whose pred is True, updating the batched carry in place.  Each
-    member's carry is sliced out before it enters fn, so fn is compiled as in an unbatched
-    program and computes the same numbers as a single run, bit for bit; ``shared`` is read
-    in place (use it for large integer data such as pair lists, which only index)."""
-    run, consts = _closed(fn, carry + tuple(shared))
+def each_active(pred, fn, *carry):
+    """``fn(*carry) if pred else carry``, where fn returns carry's structure.  Under vmap,
+    fn runs member by member, only for the members whose pred is True, updating the
+    batched carry in place.  Each member's carry is sliced out before it enters fn, so fn
+    is compiled as in an unbatched program and computes the same numbers as a single run,
+    bit for bit."""
+    run, consts = _closed(fn, carry)
 
     @jax.custom_batching.custom_vmap
-    def f(pred, consts, shared, *carry):
-        return jax.lax.cond(pred, lambda c, s, *x: run(c, *x, *s), lambda c, s, *x: x,
-                            consts, shared, *carry)
+    def f(pred, consts, *carry):
+        return jax.lax.cond(pred, lambda c, *x: run(c, *x), lambda c, *x: x, consts, *carry)
 
     @f.def_vmap
-    def rule(axis_size, in_batched, pred, consts, shared, *carry):
-        p_b, c_b, s_b, x_b = in_batched[0], in_batched[1], in_batched[2], in_batched[3:]
+    def rule(axis_size, in_batched, pred, consts, *carry):
+        p_b, c_b, x_b = in_batched[0], in_batched[1], in_batched[2:]
         if not p_b:
-            def all_members(c, s, *x):
-                return _vmap(lambda c, s, *x: run(c, *x, *s), (c_b, s_b) + tuple(x_b),
-                             (c, s) + x, axis_size)
+            def all_members(c, *x):
+                return _vmap(lambda c, *x: run(c, *x), (c_b,) + tuple(x_b), (c,) + x,
+                             axis_size)
             out = jax.lax.cond(
                 pred, all_members,
-                lambda c, s, *x: tuple(_broadcast(v, b, axis_size) for v, b in zip(x, x_b)),
-                consts, shared, *carry)
+                lambda c, *x: tuple(_broadcast(v, b, axis_size) for v, b in zip(x, x_b)),
+                consts, *carry)
             return out, jax.tree_util.tree_map(lambda _: True, out)
         carry = tuple(_broadcast(v, b, axis_size) for v, b in zip(carry, x_b))
-        pick = lambda tree, batched, i: jax.tree_util.tree_map(
-            lambda a, b: a[i] if b else a, tree, batched)
 
         def member(i, carry):
-            # slice, step, write back: the batched carry is only ever updated in place (a
+            # slice, run, write back: the batched carry is only ever updated in place (a
             # cond over the whole carry made XLA copy it for every member)
             xi = jax.tree_util.tree_map(lambda a: a[i], carry)
-            new = run(pick(consts, c_b, i), *xi, *pick(shared, s_b, i))
+            ci = jax.tree_util.tree_map(lambda a, b: a[i] if b else a, consts, c_b)
+            new = run(ci, *xi)
             return jax.tree_util.tree_map(lambda a, v: a.at[i].set(v), carry, new)
 
         out = _for_each_true(pred, member, carry)
         return out, jax.tree_util.tree_map(lambda _: True, out)
 
-    return f(jnp.asarray(pred), consts, tuple(shared), *carry)
+    return f(jnp.asarray(pred), consts, *carry)
 
 
 def _broadcast(tree, batched, size):

@@ -13,7 +13,7 @@ from typing import Any, Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from ..batching import batch_any, batch_sum, branches, each_active
+from ..batching import batch_sum, branches, each_active
 
 
 class RESULTS(enum.IntEnum):
@@ -137,13 +137,13 @@ def iterate(solver, system, y0, args, *, members_apart: bool = False, handoff: i
 
     Under `jax.vmap` (`jaxvalve.batch`) the loop runs until every member has finished, and
     a finished member's state is kept.  By default the steps of all members are one
-    vectorised program.  members_apart: each step runs member by member, for the members
-    still running (`batching.each_active`): the same compiled step as a single solve, so a
-    member's result is that of a single solve to the last bit, and finished members cost
+    vectorised program.  members_apart: each member runs its own loop, one member after
+    the other (`batching.each_active`): the same compiled loop as a single solve, so a
+    member's result is that of a single solve to the last bit, and a finished member costs
     nothing.  handoff (vectorised steps only): once at most ``handoff`` members are still
-    running, the steps go on member by member, so that a straggler's last steps cost what
-    they cost alone, not a whole batch's vectorised step (0: never).  Unbatched, all of
-    these give the single solve."""
+    running, each of them finishes in its own loop, so that a straggler's last steps cost
+    what they cost alone, not a whole batch's vectorised step (0: never).  Unbatched, all
+    of these give the single solve."""
     state = solver.init(system, y0, args)
     lazy = getattr(solver, "lazy_force", False)   # F(y0) comes from the first step
     if "f0" in args and not lazy:  # residual scale at P = 0: the initial force
@@ -151,12 +151,9 @@ def iterate(solver, system, y0, args, *, members_apart: bool = False, handoff: i
         args = _set_f0(args, F0)
     done, result = solver.terminate(system, y0, args, state)
 
-    def cond(c):
+    def running(c):
         _, _, _, n, done, _, _ = c
-        live = (~done) & (n < solver.max_steps)
-        # member by member, the loop's predicate is one for the batch: vmap then selects
-        # no carry at each step, and the body skips the members that have stopped
-        return batch_any(live) if apart else live
+        return (~done) & (n < solver.max_steps)
 
     def update(y, args, done, y_upd):
         # A vectorised batch also steps the members that have finished (and vmap discards
@@ -173,68 +170,38 @@ def iterate(solver, system, y0, args, *, members_apart: bool = False, handoff: i
         done, result = solver.terminate(system, y, args, state)
         return y, args, state, done, result
 
-    # Member by member (members_apart): the pair lists are brought up to date for the
-    # batch (a rebuild runs for the members that need one, `batching.cond_each`); then the
-    # solver step runs member by member, each member's state copied in and out, its pair
-    # list read in place; the other args are loop constants, not carried.
+    # The args other than the pair list and f0 are loop constants: carried only where the
+    # loop is the single solve's (or a plain vmap of it)
     apart = members_apart or handoff > 0
     fixed = {k: v for k, v in args.items() if k not in _STEP_ARGS} if apart else {}
     strip = lambda a: {k: v for k, v in a.items() if k not in fixed}
 
-    def one_by_one(c):
+    def trip(c):
+        # one step: the single solve's loop body (under a plain vmap, every member's)
         y, args, state, n, done, result, y_upd = c
-        live = (~done) & (n < solver.max_steps)
-        args, y_upd = update(y, {**fixed, **args}, ~live, y_upd)
+        a, y_upd = update(y, {**fixed, **args}, done, y_upd)
+        y, a, state, done, result = advance(y, a, state, done)
+        return y, strip(a), state, n + 1, done, result, y_upd
 
-        def own(y, f0, state, done, result, nbrs):
-            a = dict(fixed, nbrs=nbrs, f0=f0)
-            y, a, state, done, result = advance(y, a, state, done)
-            return y, a["f0"], state, done, result
+    def trip_kept(c):
+        # `trip` for a loop whose predicate is one for the batch: a member that has stopped
+        # keeps its carry (what vmap's own select does in the plain vectorised loop)
+        live = running(c)
+        return jax.tree_util.tree_map(lambda p, q: jnp.where(live, p, q), trip(c), c)
 
-        y, f0, state, done, result = each_active(
-            live, own, y, args["f0"], state, done, result, shared=(args["nbrs"],))
-        return y, strip(dict(args, f0=f0)), state, n + live, done, result, y_upd
-
-    def vectorised(c):
-        y, args, state, n, done, result, y_upd = c
-        args, y_upd = update(y, args, done, y_upd)
-        y, args, state, done, result = advance(y, args, state, done)
-        return y, args, state, n + 1, done, result, y_upd
-
-    def vectorised_kept(c):
-        # `vectorised` for a loop whose predicate is one for the batch: a member that has
-        # stopped keeps its carry (what vmap's own select does in the vectorised loop)
-        y, args, state, n, done, result, y_upd = c
-        live = (~done) & (n < solver.max_steps)
-        a, y_upd = update(y, {**fixed, **args}, ~live, y_upd)
-        y2, a2, state2, done2, result2 = advance(y, a, state, done)
-        # select the carried entries only (the loop constants are not carried)
-        keep = lambda u, v: jax.tree_util.tree_map(lambda p, q: jnp.where(live, p, q), u, v)
-        y, a, state, done, result = keep((y2, strip(a2), state2, done2, result2),
-                                         (y, strip(a), state, done, result))
-        return y, a, state, n + live, done, result, y_upd
-
-    def handing_off(c):
-        # vectorised while more than ``handoff`` members run (rebuilds as one array program,
-        # `batching.branches("select")`), then member by member (rebuilds per member)
-        _, _, _, n, done, _, _ = c
-        few = batch_sum(((~done) & (n < solver.max_steps)).astype(jnp.int32)) <= handoff
-
-        def alone(c):
-            with branches("members"):
-                return one_by_one(c)
-
-        def together(c):
+    c = (y0, strip(args), state, jnp.asarray(0), done, result, y0)
+    if not apart:
+        c = jax.lax.while_loop(running, trip, c)
+    else:
+        if not members_apart:
+            # vectorised while more than ``handoff`` members run, the rebuilds too as one
+            # array program (`batching.branches("select")`)
+            many = lambda c: batch_sum(running(c).astype(jnp.int32)) > handoff
             with branches("select"):
-                return vectorised_kept(c)
-
-        return jax.lax.cond(few, alone, together, c)
-
-    body = one_by_one if members_apart else handing_off if handoff > 0 else vectorised
-
-    carried = {k: v for k, v in args.items() if k not in fixed}
-    y, args, state, n, done, result, _ = jax.lax.while_loop(
-        cond, body, (y0, carried, state, jnp.asarray(0), done, result, y0))
+                c = jax.lax.while_loop(many, trip_kept, c)
+        # then each member still running finishes in its own loop, the single solve's
+        c = each_active(running(c), lambda *c: jax.lax.while_loop(running, trip, c), *c)
+    y, args, state, n, done, result, _ = c
     args = {**fixed, **args}
     result = jnp.where(done, result, RESULTS.max_steps_reached)
     return y, args, state, result, n
