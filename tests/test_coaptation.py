@@ -463,34 +463,37 @@ def test_banded_grid_heights_equal_every_line_against_every_triangle():
     assert 2 <= plan.w_band < 37
     eps = 0.05
 
-    def h(fn, x):
-        return _lse_max(fn(x, plan, _phi(x, plan), eps), eps)
-
     def dense(x, plan, phi, eps):
         return _heights(x, plan, phi, eps, plan.w)
 
-    np.testing.assert_allclose(_grid_heights(x, plan, _phi(x, plan), eps),
-                               dense(x, plan, _phi(x, plan), eps), rtol=0, atol=1e-13)
-    g_band = jax.grad(lambda x: h(_grid_heights, x))(x)
-    g_all = jax.grad(lambda x: h(dense, x))(x)
+    # jitted (plan is a pytree with static fields: one program per plan layout); op by op
+    # these gradients took most of a minute on a 2-core VM
+    curves = jax.jit(lambda fn, x, plan: fn(x, plan, _phi(x, plan), eps), static_argnums=0)
+    grad_h = jax.jit(jax.grad(lambda x, fn: _lse_max(fn(x, plan, _phi(x, plan), eps), eps)),
+                     static_argnums=1)
+    np.testing.assert_allclose(curves(_grid_heights, x, plan), curves(dense, x, plan),
+                               rtol=0, atol=1e-13)
+    g_band, g_all = grad_h(x, _grid_heights), grad_h(x, dense)
     assert np.max(np.abs(g_all)) > 0
     np.testing.assert_allclose(g_band, g_all, rtol=0, atol=1e-13)
     roomy = smooth_plan(x, t, b, f, **KW, w=np.linspace(0.0, 9.0, 37),
                         w_band=plan.w_band + 5)     # shared programs: a fixed, larger band
     assert roomy.w_band == plan.w_band + 5
-    np.testing.assert_allclose(_grid_heights(x, roomy, _phi(x, roomy), eps),
-                               dense(x, plan, _phi(x, plan), eps), rtol=0, atol=1e-13)
+    np.testing.assert_allclose(curves(_grid_heights, x, roomy), curves(dense, x, plan),
+                               rtol=0, atol=1e-13)
     with pytest.raises(ParameterError, match="w_band"):
         smooth_plan(x, t, b, f, **KW, w=np.linspace(0.0, 9.0, 37), w_band=plan.w_band - 1)
     wide = smooth_plan(x, t, b, f, **KW, w=np.linspace(-40.0, 40.0, 321))
     o = np.asarray(KW["origin"], float)
     stretched = o + 4.0 * (np.asarray(x, float) - o)   # triangles 4x wider: beyond the plan
-    assert not np.isnan(_grid_heights(x, wide, _phi(x, wide), eps)).any()
-    assert np.all(np.isnan(_grid_heights(stretched, wide, _phi(stretched, wide), eps)))
+    assert not np.isnan(curves(_grid_heights, x, wide)).any()
+    assert np.all(np.isnan(curves(_grid_heights, stretched, wide)))
+    gap = jax.jit(lambda x: smooth_gap_field(x, plan))
+    soft_h = jax.jit(lambda x: smooth_h(x, plan, eps))
     for node in (0, 3, len(x) // 2):          # a NaN node far from, or in, the zones
         bad = np.asarray(x, float).copy()
         bad[node, 0] = np.nan
-        assert np.all(np.isnan(np.asarray(smooth_gap_field(bad, plan))))
+        assert np.all(np.isnan(np.asarray(gap(bad))))
         m = _metrics(bad, plan, eps)
         assert all(np.all(np.isnan(np.asarray(v))) for v in m.values()), node
-        assert np.isnan(float(smooth_h(bad, plan, eps)))
+        assert np.isnan(float(soft_h(bad)))
