@@ -1,6 +1,5 @@
 """Test configuration: float64 everywhere, warnings are errors (see pyproject), and one
-persistent XLA compilation cache for the run, removed at its end, and the longest test files
-first (for xdist's loadfile scheduling)."""
+persistent XLA compilation cache for the run, removed at its end."""
 import jax
 
 jax.config.update("jax_enable_x64", True)
@@ -26,25 +25,6 @@ def pytest_configure(config):
     os.environ["JAXVALVE_CACHE_DIR"] = os.environ[_CACHE_ENV]
     from jaxvalve.cli import enable_compilation_cache
     enable_compilation_cache()
-    # xdist's controller would reorder the files by their number of tests; keep the
-    # collection's order (`pytest_collection_modifyitems`: longest first)
-    if hasattr(config.option, "loadscopereorder"):
-        config.option.loadscopereorder = False
-
-
-#: test files by their time in a 2-worker run (`pytest --durations`, 2026-11-23), longest
-#: first.  xdist's loadfile hands files out in collection order, so the long ones start
-#: first and the short ones fill in at the end (instead of one worker finishing a long
-#: file alone); files not named keep their order after these.
-LONGEST_FIRST = ("test_design", "test_adjoint", "test_optimize", "test_contact", "test_batch",
-                 "test_solvers", "test_notebooks", "test_coaptation", "test_soft_pairs",
-                 "test_stress_special", "test_stress_matrix", "test_energies",
-                 "test_validation")
-
-
-def pytest_collection_modifyitems(config, items):
-    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
-    items.sort(key=lambda item: rank.get(item.path.stem, len(rank)))   # stable
 
 
 def pytest_unconfigure(config):
