@@ -7,9 +7,9 @@
     python benchmarks/batch.py --h 2 --E 1 2 0.8 3 --max-steps 5000  # a straggler (0.8 stalls)
 
 One valve is built; the members are closed by `simulate_batch(scene, materials,
-valve=valve)` (one jitted vmap over the members, both loads), with the solver steps run
-member by member (``vectorize=False``, the CPU default), vectorised (``vectorize=True``,
-the GPU default, which hands the last members over to the member loop), vectorised to the
+valve=valve)` (one jitted vmap over the members, both loads), with each member's solver
+loop run in turn (``vectorize=False``, the CPU default), vectorised (``vectorize=True``,
+the GPU default, where the last members finish in their own loops), vectorised to the
 end (``handoff=0``), and, for comparison, by one `simulate(scene, valve=valve)` per member
 (one compiled solve shared by all calls).  Each path runs twice:
 the first run compiles (JAX's compile time is reported separately), the second is timed
