@@ -59,3 +59,27 @@ def test_two_sheets_pressed_together_meet_at_the_predicted_gap_and_never_cross()
     # without contact the sheets pass through each other
     free = equilibrium.solve(prob, params.replace(contact=None), x0, FIRE(rtol=1e-7))
     assert float(free.x[n, 2] - free.x[0, 2]) < 0
+
+
+def test_whole_lists_solve_traces_one_contact_branch_and_checks_its_flag():
+    """`solve(..., whole_lists=True)` traces the soft-min contact on its whole pair list:
+    its program has fewer `cond`s (no `lax.switch` over list prefixes) than the default
+    one.  (The two give the same energy, forces and second derivatives:
+    test_soft_pairs.py; the optimiser's closures use it, test_optimize.py.)"""
+    import pytest
+    from jaxvalve.errors import ParameterError
+
+    p, t, b = meshgen.disk(5.0, 3)
+    n = len(p)
+    prob, ref = make_problem(np.c_[p, np.zeros(n)], t, fixed=b)
+    x0 = jnp.asarray(np.c_[p, np.zeros(n)])
+    c = SmoothContact(soft_min=True, one_sided=True)
+    params = Params(ref=ref, material=NeoHookean(1 / 3), thickness=0.3, pressure=mmhg(80.0),
+                    contact=c)
+    nbrs = equilibrium.stale_pairs(c, prob, x0, 0.5)
+    assert nbrs.soft_capacity >= 1024          # three prefixes by default: 1024, 512, 256
+    conds = {flag: str(jax.make_jaxpr(equilibrium._solve_jit, static_argnums=(0, 5, 6))(
+        FIRE(), prob, params, x0, nbrs, 0.5, flag)).count("cond[") for flag in (False, True)}
+    assert conds[True] < conds[False]
+    with pytest.raises(ParameterError, match="whole_lists must be True or False"):
+        equilibrium.solve(prob, params, x0, FIRE(), whole_lists=1)
