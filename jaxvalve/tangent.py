@@ -126,21 +126,32 @@ def _hinge_args(problem):
 
 
 def assemble(problem, params, x, nbrs=None):
-    """The approximate stiffness K (3F x 3F scipy CSC, F free nodes, dofs node-major)."""
+    """The approximate stiffness K (3F x 3F scipy CSC, F free nodes, dofs node-major).
+
+    Blocks that are zero (contact slots without a live pair) are dropped, and entries that
+    touch a fixed node are dropped before the matrix is built, so the free dofs are
+    numbered directly (no slicing of a 3N x 3N matrix)."""
     parts = jax.device_get(_blocks(jnp.asarray(x), problem, params, nbrs,
                                    *_hinge_args(problem)))
+    free = np.asarray(problem.free)
+    slot = np.full(problem.n_nodes, -1, np.int64)         # free index of each node, or -1
+    slot[free] = np.arange(int(free.sum()))
     rows, cols, vals = [], [], []
     for H, nodes in parts:
-        dof = (3 * np.asarray(nodes)[:, :, None] + np.arange(3)).reshape(len(H), -1)
+        H = np.asarray(H).reshape(len(H), -1)
+        keep = np.any(H != 0.0, axis=1)
+        H, s = H[keep], slot[np.asarray(nodes)[keep]]      # (B, k*k), (B, k)
+        dof = np.where(s[:, :, None] >= 0, 3 * s[:, :, None] + np.arange(3), -1)
+        dof = dof.reshape(len(H), -1)
         k = dof.shape[1]
-        rows.append(np.repeat(dof, k, axis=1).ravel())
-        cols.append(np.tile(dof, (1, k)).ravel())
-        vals.append(np.asarray(H).reshape(len(H), -1).ravel())
-    n = 3 * problem.n_nodes
-    K = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                      shape=(n, n))
-    fdof = np.repeat(np.asarray(problem.free), 3)
-    return K[fdof][:, fdof].tocsc()
+        r, c = np.repeat(dof, k, axis=1).ravel(), np.tile(dof, (1, k)).ravel()
+        ok = (r >= 0) & (c >= 0)
+        rows.append(r[ok])
+        cols.append(c[ok])
+        vals.append(H.ravel()[ok])
+    n = 3 * int(free.sum())
+    return sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                         shape=(n, n))
 
 
 @jax.jit
