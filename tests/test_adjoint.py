@@ -144,8 +144,9 @@ def test_assembled_stiffness_is_the_exact_jacobian_without_contact(disk):
                     pressure=mmhg(80.0), bending=Bending(1.0))
     K = assemble(prob, params, x).toarray()
     from jaxvalve import assembly
-    J = jax.jacfwd(lambda y: assembly.residual(y, prob, params,
-                                               assembly.prepare(prob, params)))(x)
+    # jitted: op by op, the Jacobian took 13 s instead of 2 s
+    J = jax.jit(jax.jacfwd(lambda y: assembly.residual(y, prob, params,
+                                                       assembly.prepare(prob, params))))(x)
     free = np.repeat(np.asarray(prob.free), 3)
     Kx = -np.asarray(J).reshape(3 * len(free) // 3, -1)[free][:, free]
     assert K.shape == Kx.shape == (free.sum(), free.sum())
