@@ -11,6 +11,34 @@ import tempfile
 _CACHE_ENV = "JAXVALVE_TEST_XLA_CACHE"
 
 
+#: Test files by their measured time in `.ci/run` (seconds of one xdist worker, session
+#: 16, `--durations`), longest first.  With `--dist loadfile` the workers take whole files
+#: from a queue; xdist's default queue puts the files with the most tests first, which left
+#: the long files with few tests (the closure gradients, the notebooks) for the end, where
+#: one worker ran them alone.  Longest first (LPT) keeps both workers busy to the end.
+#: Files not listed follow in their usual order.
+LONGEST_FIRST = (
+    "tests/test_design.py",          # 357
+    "tests/test_adjoint.py",         # 274
+    "tests/test_optimize.py",        # 237
+    "tests/test_batch.py",           # 201
+    "tests/test_notebooks.py",       # 198
+    "tests/test_solvers.py",         # 192
+    "tests/test_contact.py",         # 201 (less since: two of its four layout cases)
+    "tests/test_soft_pairs.py",      # 164
+    "tests/test_coaptation.py",      # 114
+    "tests/stress/test_stress_special.py",   # 98
+    "tests/stress/test_stress_matrix.py",    # 85
+    "tests/test_validation.py",      # 68
+)
+
+
+def pytest_collection_modifyitems(session, config, items):
+    """Order the files longest first (`LONGEST_FIRST`); the order inside a file is kept."""
+    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda it: rank.get(it.nodeid.split("::")[0], len(rank)))
+
+
 def pytest_configure(config):
     """The same programs (a valve closure at one mesh size, the metrics) are compiled by
     several test files, in two xdist workers.  The controlling process makes one
@@ -19,6 +47,8 @@ def pytest_configure(config):
     other files.  The in-memory jit caches that the no-recompilation tests count are not
     affected.  The user's own cache (``$JAXVALVE_CACHE_DIR``, used by the CLI) is never
     touched."""
+    if hasattr(config.option, "loadscopereorder"):
+        config.option.loadscopereorder = False      # keep the order above (xdist)
     if not hasattr(config, "workerinput") and _CACHE_ENV not in os.environ:
         os.environ[_CACHE_ENV] = tempfile.mkdtemp(prefix="jaxvalve-test-xla-")
         config._jaxvalve_cache = os.environ[_CACHE_ENV]
