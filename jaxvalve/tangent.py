@@ -36,6 +36,7 @@ from .contact.smooth import _columns
 from .contact.neighbours import whole_lists
 from .contact.soft_pairs import SoftPairs
 from .errors import ConvergenceError
+from .quick_jit import quick_jit
 
 __all__ = ["assemble", "adjoint_solve", "residual_vjp", "AdjointReport"]
 
@@ -104,7 +105,7 @@ def _contact_blocks(x, problem, params, ref, pairs: SoftPairs):
     return wt[:, None, None] * gv[:, :, None] * gv[:, None, :], idx.T
 
 
-@jax.jit
+@quick_jit
 def _blocks(x, problem, params, nbrs, hinge_nodes, hinge_tris):
     ref = assembly.prepare(problem, params)
     out = [(assembly._element_hessians(x, problem, params, ref)
@@ -154,7 +155,7 @@ def assemble(problem, params, x, nbrs=None):
                          shape=(n, n))
 
 
-@jax.jit
+@quick_jit
 def residual_vjp(x, problem, params, nbrs, v):
     """(v . dR/dx (N, 3), v . dR/dparams (a `Params`)) for the residual R(x, params), v
     (N, 3).  One compiled program serves the adjoint's K^T products (`adjoint_solve`) and

@@ -34,6 +34,7 @@ from jaxvalve.coaptation.smooth import smooth_metrics, smooth_plan
 from jaxvalve.design import ValveDesign
 from jaxvalve.errors import ConvergenceError, ParameterError
 from jaxvalve.leaflet_mesh import mesh_leaflet
+from jaxvalve.quick_jit import quick_jit
 from jaxvalve.solvers import RESULTS
 from jaxvalve.template import Template
 from jaxvalve.template_map import template_map
@@ -131,11 +132,11 @@ class Evaluator:
         self.capacity = self.w_band = None
         self._grad_jit = jax.jit(jax.value_and_grad(
             lambda rab, st, pl, ar: self._terms(rab, None, st, pl, ar, True), has_aux=True))
-        self._direct_jit = jax.jit(jax.value_and_grad(
+        self._direct_jit = quick_jit(jax.value_and_grad(
             lambda rab, xs, st, pl, ar: self._terms(rab, xs, st, pl, ar, False),
             argnums=(0, 1), has_aux=True))
         self._design_pull_jit = jax.jit(self._design_pullback)
-        self._metric_jac_jit = jax.jit(jax.jacrev(self._load_metrics, argnums=(0, 2)),
+        self._metric_jac_jit = quick_jit(jax.jacrev(self._load_metrics, argnums=(0, 2)),
                                        static_argnums=(1,))
         self._dcc_jit = jax.jit(self.d_cc)
         # host-side maps, compiled once per mesh (eager jax.numpy would compile each op)

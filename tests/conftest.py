@@ -12,24 +12,24 @@ _CACHE_ENV = "JAXVALVE_TEST_XLA_CACHE"
 
 
 #: Test files by their measured time in `.ci/run` (seconds of one xdist worker, session
-#: 16, `--durations`), longest first.  With `--dist loadfile` the workers take whole files
+#: 17, `--durations`), longest first.  With `--dist loadfile` the workers take whole files
 #: from a queue; xdist's default queue puts the files with the most tests first, which left
 #: the long files with few tests (the closure gradients, the notebooks) for the end, where
 #: one worker ran them alone.  Longest first (LPT) keeps both workers busy to the end.
 #: Files not listed follow in their usual order.
 LONGEST_FIRST = (
-    "tests/test_design.py",          # 357
-    "tests/test_adjoint.py",         # 274
-    "tests/test_optimize.py",        # 237
-    "tests/test_batch.py",           # 201
-    "tests/test_notebooks.py",       # 198
-    "tests/test_solvers.py",         # 192
-    "tests/test_contact.py",         # 201 (less since: two of its four layout cases)
-    "tests/test_soft_pairs.py",      # 164
-    "tests/test_coaptation.py",      # 114
-    "tests/stress/test_stress_special.py",   # 98
-    "tests/stress/test_stress_matrix.py",    # 85
-    "tests/test_validation.py",      # 68
+    "tests/test_optimize.py",        # 189
+    "tests/test_notebooks.py",       # 180
+    "tests/test_adjoint.py",         # 175
+    "tests/test_batch.py",           # 173
+    "tests/test_contact.py",         # 162
+    "tests/test_solvers.py",         # 141
+    "tests/test_design.py",          # 136
+    "tests/test_soft_pairs.py",      # 131
+    "tests/stress/test_stress_special.py",   # 102
+    "tests/test_coaptation.py",      # 95
+    "tests/stress/test_stress_matrix.py",    # 78
+    "tests/test_validation.py",      # 55
 )
 
 
