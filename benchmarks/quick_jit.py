@@ -14,9 +14,8 @@ lowered module and run ``--runs`` times on the closed state:
 * design_pullback: the template's part of the gradient (once per gradient); it gains
   nothing, so the optimiser compiles it with the plain `jax.jit`.
 
-Prints compile s, run ms (median) and the largest difference of the outputs (NaN entries
-must agree: the residual's derivative with respect to the contact gap is NaN in both),
-then the
+Prints compile s, run ms (median) and the largest difference of the outputs (NaN entries,
+if any, must agree), then the
 compile-time sums and the run time one optimisation would add (calls per program as in
 the default run: 6 forward evaluations, 5 gradients with ~50 K^T products each).
 """

@@ -325,6 +325,9 @@ class SmoothContact:
             if self.one_sided:
                 at_min = ok & (d0 <= dmin[g])
                 side = jax.ops.segment_max(jnp.where(at_min, side_p, -1.0), g, num_segments=R)
+                # a group without pairs has side -inf (empty max): its energy term is
+                # masked, but 0 * inf would put NaN into the gradient w.r.t. the gap
+                side = jnp.where(found, side, 1.0)
                 s_hard = side * dmin
             else:
                 side, s_hard = 1.0, dmin
