@@ -33,14 +33,20 @@ def test_quick_jit_matches_jit_and_the_analytic_stress():
     E = 0.5 * (np.swapaxes(Fn, -1, -2) @ Fn - np.eye(3))
     S = 2 * 0.3 * E + 1.2 * np.trace(E, axis1=-2, axis2=-1)[:, None, None] * np.eye(3)
     np.testing.assert_allclose(P, Fn @ S, rtol=1e-12, atol=1e-14)
-    if jax.default_backend() == "cpu":
-        assert QUICK_CPU_OPTIONS == {"xla_cpu_use_fusion_emitters": False}
+    # at the top level on the CPU the program compiled with the options is the one run
+    expect = quick._quick if jax.default_backend() == "cpu" else quick._plain
+    assert quick._pick(((F, mu, lam), {})) is expect
+    assert expect._cache_size() == 1
+    assert QUICK_CPU_OPTIONS               # options are set, so the two jits differ
 
 
 def test_quick_jit_inside_jit_grad_and_vmap():
     # compile options belong to top-level programs: traced calls use the plain jit
     quick = quick_jit(_energy)
     F, mu, lam = _inputs(1)
+    picked = []
+    jax.jit(lambda F: picked.append(quick._pick(((F, mu, lam), {}))) or F)(F)
+    assert picked == [quick._plain]
     outer = jax.jit(lambda F, mu: quick(F, mu, lam) * 2.0)
     np.testing.assert_allclose(float(outer(F, mu)), 2.0 * float(_energy(F, mu, lam)), rtol=1e-14)
     g = jax.grad(lambda mu: quick(F, mu, lam))(mu)
