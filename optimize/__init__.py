@@ -1,8 +1,8 @@
 """Gradient-based tuning of the Ozaki template (r, a, b) against coaptation targets.
 
     from optimize import optimize_template, Objective, parse_target
-    res = optimize_template(Scene(h=1.5), Objective(targets=(parse_target("h_c>=4"),
-                                                               parse_target("h=8"))))
+    res = optimize_template(Scene(h=1.5, rtol=1e-6, max_steps=5000),
+                            Objective(targets=(parse_target("h_c>=4"), parse_target("h=8"))))
 
 Modules: targets (what a metric should be), objective (targets + leaflet size +
 template constraints), evaluate (closures, smooth metrics and adjoint gradients as

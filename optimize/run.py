@@ -19,7 +19,22 @@ from .evaluate import Evaluator
 from .objective import Objective
 from .trajectory import plot_run, read_checkpoint, write_checkpoint, write_trajectory
 
-__all__ = ["optimize_template", "OptimizationResult"]
+__all__ = ["optimize_template", "OptimizationResult", "default_scene", "OPTIMIZE_RTOL",
+           "OPTIMIZE_MAX_STEPS"]
+
+#: Relative residual of the closures an optimisation runs: gradients need a tight
+#: equilibrium (the scene's own default, 1e-4, is for reporting metrics).
+OPTIMIZE_RTOL = 1e-6
+#: FIRE step limit per closure: a warm-started closure takes ~500 steps; a trial that
+#: cycles is cut short and the line search halves the step.
+OPTIMIZE_MAX_STEPS = 5000
+
+
+def default_scene() -> Scene:
+    """The benchmark `Scene` with the closure settings of an optimisation
+    (`OPTIMIZE_RTOL`, `OPTIMIZE_MAX_STEPS`): what ``jaxvalve optimize`` runs without
+    flags, and what `optimize_template` uses when no scene is given."""
+    return Scene(rtol=OPTIMIZE_RTOL, max_steps=OPTIMIZE_MAX_STEPS)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -84,11 +99,13 @@ def optimize_template(scene: Scene | None = None, objective: Objective | None = 
     setting, else True.  verify: close the final design once more from
     the placement and compare its objective with the run's (relative ``verify_rtol``): a
     warm-started run can follow a branch of closed states that the open valve does not
-    reach; `OptimizationResult.check` and ``consistent`` report it.
+    reach; `OptimizationResult.check` and ``consistent`` report it.  scene None:
+    `default_scene()` (the benchmark valve with rtol 1e-6, as ``jaxvalve optimize``); a
+    given scene is used as it is, so pass rtol=1e-6 for gradients that match its CLI.
     """
     from jaxvalve.simulation import compile_timer
 
-    scene = Scene() if scene is None else scene
+    scene = default_scene() if scene is None else scene
     objective = Objective() if objective is None else objective
     if objective.area_ref is None:
         objective = dataclasses.replace(objective, area_ref=scene.template().area)

@@ -250,7 +250,7 @@ def test_cli_exits_3_when_the_final_check_disagrees(monkeypatch, tmp_path, capsy
     seen = {}
 
     def fake(scene, objective, **kw):
-        seen.update(kw)
+        seen.update(kw, scene=scene)
         rec = dict(iteration=0, objective=1.0, **{"m:h": 8.0})
         check = None if not kw["verify"] else dict(converged=True, value=2.0, metrics={},
                                                    consistent=False, message="WARNING")
@@ -260,6 +260,12 @@ def test_cli_exits_3_when_the_final_check_disagrees(monkeypatch, tmp_path, capsy
     monkeypatch.setattr(optimize, "optimize_template", fake)
     assert main(["optimize", "--out", str(tmp_path)]) == 3
     assert seen["warm_start"] is True and seen["verify"] is True
+    # without flags the CLI closes as the Python function does without a scene
+    assert seen["scene"] == optimize.run.default_scene()
+    assert seen["scene"].rtol == optimize.run.OPTIMIZE_RTOL < Scene().rtol
+    assert main(["optimize", "--rtol", "1e-5", "--max-steps", "700", "--out",
+                 str(tmp_path)]) == 3
+    assert (seen["scene"].rtol, seen["scene"].max_steps) == (1e-5, 700)
     assert main(["optimize", "--cold-closures", "--no-check", "--out", str(tmp_path)]) == 0
     assert seen["warm_start"] is False and seen["verify"] is False
     with pytest.raises(ParameterError, match="verify_rtol must be a finite number > 0"):

@@ -109,13 +109,12 @@ def run(args) -> int:
     def say(msg):
         print(f"[jaxvalve] {msg}", flush=True)
 
+    from optimize.run import OPTIMIZE_MAX_STEPS, OPTIMIZE_RTOL
     scene = make_scene(args)
     if args.rtol is None:
-        scene = scene.replace(rtol=1e-6)      # gradients need a tight equilibrium
+        scene = scene.replace(rtol=OPTIMIZE_RTOL)      # gradients need a tight equilibrium
     if args.max_steps is None:
-        # a warm-started closure takes ~500 FIRE steps; a trial that cycles is cut
-        # short and the line search halves the step
-        scene = scene.replace(max_steps=5000)
+        scene = scene.replace(max_steps=OPTIMIZE_MAX_STEPS)
     objective = make_objective(args)
     say("targets: " + "; ".join(t.describe() for t in objective.targets)
         + f"; size weight {objective.size_weight:g}")

@@ -46,8 +46,9 @@ _FLAGS = {
     ],
     "solver and metrics": [
         ("--rtol", float, "relative force residual ||F_free|| / ||F_pressure|| to reach "
-                          "(default 1e-6)"),
-        ("--max-steps", int, "iteration limit per solve (fire, paper; default 50000)"),
+                          "(default 1e-4; optimize: 1e-6)"),
+        ("--max-steps", int, "iteration limit per solve (fire, paper; default 50000; "
+                             "optimize: 5000)"),
         ("--g-c", float, "coaptation distance g_c, mm: a point is in contact where the gap "
                          "to another leaflet is below it (default 0.5)"),
     ],
