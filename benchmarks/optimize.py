@@ -29,8 +29,7 @@ sys.path = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).pa
 import numpy as np  # noqa: E402
 import scipy.optimize  # noqa: E402
 
-from jaxvalve import Scene  # noqa: E402
-from optimize import Evaluator, Objective, optimize_template
+from optimize import Evaluator, Objective, default_scene, optimize_template
 
 
 NAME = "L-BFGS + adjoint"
@@ -49,7 +48,7 @@ def main(argv=None):
                     help="close every design from the placement (no warm starts): the "
                          "objective is then a function of (r, a, b) alone")
     args = ap.parse_args(argv)
-    scene = Scene(h=args.h, rtol=1e-6, max_steps=5000)
+    scene = default_scene().replace(h=args.h)
     obj = Objective(area_ref=scene.template().area)
     start = np.array([scene.r, scene.a, scene.b])
     ev = Evaluator(scene, obj, warm_start=not args.cold)

@@ -1,7 +1,7 @@
 """Gradient-based tuning of the Ozaki template (r, a, b) against coaptation targets.
 
-    from optimize import optimize_template, Objective, parse_target
-    res = optimize_template(Scene(h=1.5, rtol=1e-6, max_steps=5000),
+    from optimize import optimize_template, default_scene, Objective, parse_target
+    res = optimize_template(default_scene().replace(h=1.5),   # rtol 1e-6, 5000 steps
                             Objective(targets=(parse_target("h_c>=4"), parse_target("h=8"))))
 
 Modules: targets (what a metric should be), objective (targets + leaflet size +
@@ -14,9 +14,9 @@ import jaxvalve  # noqa: F401  (float64)
 from .evaluate import Evaluation, Evaluator
 from .loop import LoopState, init, make_optimizer, update
 from .objective import DEFAULT_BOUNDS, Objective
-from .run import OptimizationResult, optimize_template
+from .run import OptimizationResult, default_scene, optimize_template
 from .targets import DEFAULT_TARGETS, METRICS, Target, parse_target, targets_from_dict
 
-__all__ = ["optimize_template", "OptimizationResult", "Objective", "DEFAULT_BOUNDS",
+__all__ = ["optimize_template", "default_scene", "OptimizationResult", "Objective", "DEFAULT_BOUNDS",
            "Target", "parse_target", "targets_from_dict", "METRICS", "DEFAULT_TARGETS",
            "Evaluator", "Evaluation", "LoopState", "init", "update", "make_optimizer"]

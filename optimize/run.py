@@ -25,7 +25,7 @@ __all__ = ["optimize_template", "OptimizationResult", "default_scene", "OPTIMIZE
 #: Relative residual of the closures an optimisation runs: gradients need a tight
 #: equilibrium (the scene's own default, 1e-4, is for reporting metrics).
 OPTIMIZE_RTOL = 1e-6
-#: FIRE step limit per closure: a warm-started closure takes ~500 steps; a trial that
+#: FIRE step limit per closure: a warm-started closure takes ~500-900 steps; a trial that
 #: cycles is cut short and the line search halves the step.
 OPTIMIZE_MAX_STEPS = 5000
 
