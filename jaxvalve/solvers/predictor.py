@@ -5,6 +5,13 @@ shape of a membrane under uniform tension T and pressure solves T L phi = F_pres
 the cotangent Laplacian of the reference mesh.  The predictor takes phi, then finds the
 amplitude s where the force along that mode vanishes, phi . F(x0 + s phi) = 0 (a one-mode
 Galerkin solve, by bracketing and regula falsi).  It does one step.
+
+A trial amplitude whose state is past the material's stretch limit (Gent) or has a
+non-finite force counts as "too far", like a negative mode force: the bracket then closes
+there and the root search bisects towards the admissible side.  (Past the Gent limit the
+strain energy is masked, so the mode force there is the bare pressure load; read at face
+value it kept the bracket growing until it gave up and the predictor left the membrane
+flat, where Newton cannot start.)
 """
 from __future__ import annotations
 
@@ -36,12 +43,19 @@ class BulgePredictor:
 
     def step(self, system, y, args, s):
         phi = self._shape(system, y, args)
-        g = lambda t: jnp.sum(phi * system.force(y + t * phi, args))
+
+        def g(t):
+            """Mode force phi . F at amplitude t; -inf where the state is not admissible."""
+            z = y + t * phi
+            gt = jnp.sum(phi * system.force(z, args))
+            valid = jnp.isfinite(gt) & system.admissible(z, args)
+            return jnp.where(valid, gt, -jnp.inf)
+
         pmax = jnp.max(jnp.linalg.norm(phi, axis=-1))
         span = jnp.max(jnp.ptp(y, axis=0))
         t0 = 1e-3 * span / jnp.where(pmax > 0, pmax, 1.0)
 
-        # bracket: double t until the mode force changes sign
+        # bracket: double t until the mode force changes sign (or the state is too far)
         def bcond(c):
             t, gt, k = c
             return (gt > 0) & (k < 40)
@@ -54,9 +68,10 @@ class BulgePredictor:
         t_lo = jnp.where(kb > 0, 0.5 * t_hi, 0.0)
         g_lo = g(t_lo)
 
-        def rbody(_, c):  # Illinois regula falsi
+        def rbody(_, c):  # Illinois regula falsi; bisection while the upper end is too far
             a, ga, b, gb, side = c
-            t = (a * gb - b * ga) / jnp.where(gb != ga, gb - ga, 1.0)
+            rf = (a * gb - b * ga) / jnp.where(gb != ga, gb - ga, 1.0)
+            t = jnp.where(jnp.isfinite(gb), rf, 0.5 * (a + b))
             gt = g(t)
             pos = gt > 0
             a2, ga2 = jnp.where(pos, t, a), jnp.where(pos, gt, jnp.where(side == -1, 0.5 * ga, ga))
@@ -65,10 +80,11 @@ class BulgePredictor:
 
         a, ga, b, gb, _ = jax.lax.fori_loop(0, self.root_steps, rbody,
                                             (t_lo, g_lo, t_hi, g_hi, jnp.asarray(0)))
+        # the end with the smaller mode force; an end past the limit (-inf) is never taken
         t = jnp.where(jnp.abs(ga) < jnp.abs(gb), a, b)
-        ok = (g_hi <= 0) & jnp.isfinite(t)
+        ok = (g_hi <= 0) & jnp.isfinite(t) & jnp.isfinite(g(t))
         y = jnp.where(ok, y + t * phi, y)
-        return y, dict(n=s["n"] + 1, evals=s["evals"] + kb + self.root_steps + 2)
+        return y, dict(n=s["n"] + 1, evals=s["evals"] + kb + self.root_steps + 3)
 
     def terminate(self, system, y, args, s):
         return s["n"] >= 1, jnp.asarray(RESULTS.successful)
