@@ -7,7 +7,7 @@ import os
 #: XLA's older CPU fusion emitters (what `jaxvalve.quick_jit` picks for short-running
 #: programs) compile faster; the newer default ones make faster loops.  Measured on one
 #: file at a time (session 19): tests/test_design.py 110.6 -> 91.7 s, tests/test_batch.py
-#: 128.4 -> 115.0 s (CPU time 3m02 -> 2m29).  The values agree to rounding; the benchmarks
+#: 128.4 -> 115.0 s (CPU time 3m02 -> 2m29).  The suite passes with both; the benchmarks
 #: and the CLI keep XLA's defaults.  JAXVALVE_TEST_DEFAULT_EMITTERS=1 runs the suite on
 #: the defaults.  Set before JAX starts its CPU backend (xdist workers import this too).
 _EMITTERS_FLAG = "--xla_cpu_use_fusion_emitters=false"

@@ -81,10 +81,11 @@ class BulgePredictor:
         a, ga, b, gb, _ = jax.lax.fori_loop(0, self.root_steps, rbody,
                                             (t_lo, g_lo, t_hi, g_hi, jnp.asarray(0)))
         # the end with the smaller mode force; an end past the limit (-inf) is never taken
-        t = jnp.where(jnp.abs(ga) < jnp.abs(gb), a, b)
-        ok = (g_hi <= 0) & jnp.isfinite(t) & jnp.isfinite(g(t))
+        near = jnp.abs(ga) < jnp.abs(gb)
+        t, gt = jnp.where(near, a, b), jnp.where(near, ga, gb)
+        ok = (g_hi <= 0) & jnp.isfinite(t) & jnp.isfinite(gt)
         y = jnp.where(ok, y + t * phi, y)
-        return y, dict(n=s["n"] + 1, evals=s["evals"] + kb + self.root_steps + 3)
+        return y, dict(n=s["n"] + 1, evals=s["evals"] + kb + self.root_steps + 2)
 
     def terminate(self, system, y, args, s):
         return s["n"] >= 1, jnp.asarray(RESULTS.successful)
