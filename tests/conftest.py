@@ -71,6 +71,34 @@ def pytest_configure(config):
     enable_compilation_cache()
 
 
+def _cpu_summary():
+    """'model, N cores, ISA' of this machine's CPU, from /proc/cpuinfo (Linux) or platform."""
+    import platform
+    model, flags = platform.processor() or platform.machine(), set()
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                key, _, value = line.partition(":")
+                if key.strip() == "model name":
+                    model = value.strip()
+                elif key.strip() == "flags":
+                    flags = set(value.split())
+                    break
+    except OSError:
+        pass
+    isa = [name for name in ("avx512f", "avx2", "avx", "fma") if name in flags]
+    return f"{model}, {os.cpu_count()} cores, ISA {'/'.join(isa) or 'unknown'}"
+
+
+def pytest_terminal_summary(terminalreporter):
+    """One line naming the platform, so that a failure on another machine (the CI's) can be
+    matched to its CPU and JAX release."""
+    import jaxlib
+    terminalreporter.write_line(
+        f"jaxvalve test platform: jax {jax.__version__}, jaxlib {jaxlib.__version__}, "
+        f"{_cpu_summary()}, XLA_FLAGS={os.environ.get('XLA_FLAGS', '')!r}")
+
+
 def pytest_unconfigure(config):
     path = getattr(config, "_jaxvalve_cache", None)
     if path:
