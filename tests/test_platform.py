@@ -1,15 +1,20 @@
 """The installed JAX compiles the CPU programs jaxvalve relies on correctly.
 
-jax/jaxlib 0.10.2 miscompiles some CPU programs silently (jax-ml/jax#39103); pyproject.toml
-excludes it.  These tests catch such a release, and compare the jitted force, energy and
-stretch check of every material with op-by-op evaluation on the machine that runs them."""
+jaxlib 0.10's YNNPACK fusions have miscompiled CPU programs silently (jax-ml/jax#39103, on
+0.10.2) and crashed depending on the CPU (#39257): `jaxvalve.xla_setup` turns them off,
+and pyproject.toml excludes 0.10.2.  These tests check both, run #39103's reproducer, and
+compare the jitted force, energy and stretch check of every material with op-by-op
+evaluation on the machine that runs them."""
+import os
+import warnings
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import jaxvalve
-from jaxvalve import assembly, meshgen
+from jaxvalve import assembly, meshgen, xla_setup
 from jaxvalve.materials import Gent, MassSpring, NeoHookean, StVenantKirchhoff
 from jaxvalve.problem import Params, make_problem, mmhg
 
@@ -18,16 +23,50 @@ def test_installed_jax_is_not_a_known_miscompiling_release():
     assert jax.__version__ not in jaxvalve.MISCOMPILING_JAX
 
 
-def test_jit_matches_op_by_op_for_a_vmapped_matvec_reduction():
-    """jax-ml/jax#39103: under jit, rows past 16384 came out wrong on 0.10.2 (row 16384 gave
-    16368^2 instead of 16384^2).  Each row here is |M x_i|^2 = x_i . x_i, exactly."""
-    n = 16385
+def _matvec_rows(n):
     i = jnp.arange(n, dtype=jnp.float64)
     x = jnp.stack((i, jnp.zeros_like(i), jnp.zeros_like(i)), axis=1)
     M = jnp.eye(3)
-    f = lambda x: jax.vmap(lambda row: jnp.sum((M @ row) ** 2))(x)
-    np.testing.assert_array_equal(np.asarray(jax.jit(f)(x)), np.asarray(i) ** 2)
-    np.testing.assert_array_equal(np.asarray(f(x)), np.asarray(i) ** 2)
+    return (lambda x: jax.vmap(lambda row: jnp.sum((M @ row) ** 2))(x)), x, np.asarray(i) ** 2
+
+
+def test_importing_jaxvalve_turned_the_ynnpack_fusions_off():
+    """`import jaxvalve` put the flag in XLA_FLAGS before the backend started, so a
+    compiled dot-and-sum (which jaxlib 0.10 hands to YNNPACK) holds no YNNPACK fusion."""
+    assert xla_setup.ynn_disabled(), os.environ.get("XLA_FLAGS")
+    f, x, _ = _matvec_rows(64)
+    assert "__ynn" not in jax.jit(f).lower(x).compile().as_text()
+
+
+def test_configure_warns_when_the_backend_has_already_started(monkeypatch):
+    """Here the backend has started, so the flag can no longer act: `configure` says so and
+    leaves XLA_FLAGS alone.  JAXVALVE_ALLOW_YNN=1, or the flag named by the user, is kept
+    silently."""
+    jnp.zeros(1).block_until_ready()
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
+    monkeypatch.delenv("JAXVALVE_ALLOW_YNN", raising=False)
+    with pytest.warns(RuntimeWarning, match="YNNPACK fusions stay on"):
+        xla_setup.configure()
+    assert os.environ["XLA_FLAGS"] == "--xla_cpu_use_fusion_emitters=false"
+    monkeypatch.setenv("JAXVALVE_ALLOW_YNN", "1")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        xla_setup.configure()
+    monkeypatch.delenv("JAXVALVE_ALLOW_YNN")
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_experimental_ynn_fusion_type=dot")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        xla_setup.configure()
+    assert os.environ["XLA_FLAGS"] == "--xla_cpu_experimental_ynn_fusion_type=dot"
+
+
+def test_jit_matches_op_by_op_for_a_vmapped_matvec_reduction():
+    """jax-ml/jax#39103: under jit, rows past 16384 came out wrong on 0.10.2 (row 16384 gave
+    16368^2 instead of 16384^2), a YNNPACK fusion (correct on 0.10.2 with the fusions off,
+    and on 0.10.1).  Each row here is |M x_i|^2 = x_i . x_i, exactly."""
+    f, x, exact = _matvec_rows(16385)
+    np.testing.assert_array_equal(np.asarray(jax.jit(f)(x)), exact)
+    np.testing.assert_array_equal(np.asarray(f(x)), exact)
 
 
 @pytest.fixture(scope="module")
