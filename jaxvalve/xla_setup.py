@@ -5,9 +5,9 @@ jaxlib 0.10 hands some dot products, with the reductions around them, to YNNPACK
 (jax-ml/jax#39103: rows past 16384 of a vmapped 3x3 matrix-vector product and sum, on
 0.10.2) and crashes or hangs that depend on the CPU (jax-ml/jax#39257).  (In jaxvalve,
 compiled on an AVX2 machine, they sat in the Newton preconditioner's element Hessians.)
-jaxvalve's programs hold only small dots (3x3 element maps, 2x2 and 3x3 blocks), where YNNPACK buys
-nothing: the benchmark valve's closure and the default optimisation take the same time
-with and without it.  So jaxvalve turns the YNNPACK fusions off (XLA's own emitters
+jaxvalve's programs hold only small dots (3x3 element maps, 2x2 and 3x3 blocks), where
+YNNPACK buys nothing: the benchmark valve's closure and the default optimisation take the
+same time with and without it.  So jaxvalve turns the YNNPACK fusions off (XLA's own emitters
 compile those dots) by adding `NO_YNN_FLAG` to ``XLA_FLAGS`` before JAX starts its CPU
 backend.  Set ``JAXVALVE_ALLOW_YNN=1``, or name the flag in ``XLA_FLAGS`` yourself, to
 keep XLA's choice.  If the backend has already started when jaxvalve is imported, the
