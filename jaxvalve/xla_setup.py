@@ -43,7 +43,8 @@ def configure() -> None:
                       "(jax-ml/jax#39103); install another release, e.g. pip install "
                       "'jax==0.10.1' 'jaxlib==0.10.1'", RuntimeWarning, stacklevel=3)
     flags = os.environ.get("XLA_FLAGS", "")
-    if os.environ.get("JAXVALVE_ALLOW_YNN") == "1" or "xla_cpu_experimental_ynn_fusion_type" in flags:
+    user_set = "xla_cpu_experimental_ynn_fusion_type" in flags
+    if os.environ.get("JAXVALVE_ALLOW_YNN") == "1" or user_set:
         return
     if xla_bridge.backends_are_initialized():
         warnings.warn("JAX's backend started before jaxvalve was imported, so XLA's YNNPACK "

@@ -94,7 +94,8 @@ def test_jitted_force_and_stretch_check_match_op_by_op(bulged, mat, admissible):
     r = assembly.prepare(prob, params)
 
     def parts(x):
-        return (assembly.residual(x, prob, params, r), assembly.element_energies(x, prob, params, r),
+        return (assembly.residual(x, prob, params, r),
+                assembly.element_energies(x, prob, params, r),
                 assembly.stretch_admissible(x, prob, params, r))
 
     F_jit, W_jit, ok_jit = jax.jit(parts)(x)
