@@ -10,7 +10,6 @@ jax.config.update("jax_enable_x64", True)
 from . import xla_setup  # noqa: E402
 
 xla_setup.configure()     # XLA's YNNPACK fusions off (see xla_setup), before any compile
-MISCOMPILING_JAX = xla_setup.MISCOMPILING_JAX
 
 from .equilibrium import solve  # noqa: E402
 from .problem import Params, Problem, make_problem, mmhg  # noqa: E402

@@ -27,6 +27,14 @@ NO_YNN_FLAG = "--xla_cpu_experimental_ynn_fusion_type="
 MISCOMPILING_JAX = ("0.10.2",)
 
 
+def add_flag(flag: str) -> None:
+    """Append ``flag`` to ``XLA_FLAGS`` unless it is there already.  XLA reads the flags
+    when JAX starts its backend, so this acts only before the first computation."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    if flag not in flags.split():
+        os.environ["XLA_FLAGS"] = (flags + " " + flag).strip()
+
+
 def ynn_disabled() -> bool:
     """True when ``XLA_FLAGS`` turns the YNNPACK fusions off (as `configure` sets it)."""
     return NO_YNN_FLAG in os.environ.get("XLA_FLAGS", "").split()
@@ -42,8 +50,7 @@ def configure() -> None:
         warnings.warn(f"jax {jax.__version__} is known to miscompile some CPU programs "
                       "(jax-ml/jax#39103); install another release, e.g. pip install "
                       "'jax==0.10.1' 'jaxlib==0.10.1'", RuntimeWarning, stacklevel=3)
-    flags = os.environ.get("XLA_FLAGS", "")
-    user_set = "xla_cpu_experimental_ynn_fusion_type" in flags
+    user_set = "xla_cpu_experimental_ynn_fusion_type" in os.environ.get("XLA_FLAGS", "")
     if os.environ.get("JAXVALVE_ALLOW_YNN") == "1" or user_set:
         return
     if xla_bridge.backends_are_initialized():
@@ -51,4 +58,4 @@ def configure() -> None:
                       "fusions stay on (jax-ml/jax#39103, #39257); import jaxvalve first, or "
                       f"set XLA_FLAGS={NO_YNN_FLAG}", RuntimeWarning, stacklevel=3)
         return
-    os.environ["XLA_FLAGS"] = (flags + " " + NO_YNN_FLAG).strip()
+    add_flag(NO_YNN_FLAG)

@@ -9,13 +9,14 @@ import os
 #: file at a time (session 19): tests/test_design.py 110.6 -> 91.7 s, tests/test_batch.py
 #: 128.4 -> 115.0 s (CPU time 3m02 -> 2m29).  The suite passes with both; the benchmarks
 #: and the CLI keep XLA's defaults.  JAXVALVE_TEST_DEFAULT_EMITTERS=1 runs the suite on
-#: the defaults.  Set before JAX starts its CPU backend (xdist workers import this too).
-_EMITTERS_FLAG = "--xla_cpu_use_fusion_emitters=false"
-if (os.environ.get("JAXVALVE_TEST_DEFAULT_EMITTERS") != "1"
-        and _EMITTERS_FLAG not in os.environ.get("XLA_FLAGS", "")):
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + _EMITTERS_FLAG).strip()
+#: the defaults.  Set before JAX starts its CPU backend (xdist workers import this too),
+#: the same way `import jaxvalve` adds its own flag (`jaxvalve.xla_setup.add_flag`).
+from jaxvalve.xla_setup import add_flag
 
-import jax
+if os.environ.get("JAXVALVE_TEST_DEFAULT_EMITTERS") != "1":
+    add_flag("--xla_cpu_use_fusion_emitters=false")
+
+import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 
