@@ -497,3 +497,53 @@ def test_banded_grid_heights_equal_every_line_against_every_triangle():
         m = _metrics(bad, plan, eps)
         assert all(np.all(np.isnan(np.asarray(v))) for v in m.values()), node
         assert np.isnan(float(soft_h(bad)))
+
+
+def _triangle_index(T):
+    """`central_index` layout for T triangles of leaflet 0 (nodes 3t..3t+2), triple (0; 1, 2),
+    with no node or edge candidates."""
+    e = np.zeros((0,), np.int64)
+    tris = np.arange(3 * T, dtype=np.int64).reshape(T, 3)
+    return (e, e, e, np.zeros((0, 2), np.int64), e, e, tris, np.ones(T, np.int64),
+            np.full(T, 2, np.int64))
+
+
+@pytest.mark.parametrize("sharp", [False, True])
+def test_central_candidates_drop_coinciding_level_lines(sharp):
+    # phi_k = c phi_j on a triangle: the two level lines coincide (or the zones are
+    # disjoint), so there is no interior intersection point.  cv = fx x fy is then only
+    # rounding error, and cv / sum(cv) once gave weights up to 0.89 and derivatives
+    # ~1e18-1e20 (compiled code contracts a*b - c*d into FMAs, so even fx x fx != 0).
+    from jaxvalve.coaptation._central import central_candidates
+
+    rng = np.random.default_rng(1)
+    T = 64
+    f = rng.uniform(-0.08, 0.08, size=3 * T)
+    c = np.repeat(rng.choice([1.0, 0.7, -2.0, 3.1], size=T), 3)
+    phi = np.stack([f, f, c * f], axis=1)
+    x = rng.normal(size=(3 * T, 3))
+    idx = _triangle_index(T)
+    if sharp:
+        _, w = central_candidates(x, phi, idx, None, np)
+        assert np.all(w == 0)
+        return
+
+    def total(phi):
+        p, w = central_candidates(jnp.asarray(x), phi, idx, 0.1, jnp)
+        return jnp.sum(p * jnp.arange(1.0, 4.0)) + jnp.sum(w)
+
+    _, w = jax.jit(lambda phi: central_candidates(jnp.asarray(x), phi, idx, 0.1, jnp))(phi)
+    assert np.all(np.asarray(w) == 0)
+    g = np.asarray(jax.jit(jax.grad(total))(jnp.asarray(phi)))
+    with jax.disable_jit():
+        g_op = np.asarray(jax.grad(total)(jnp.asarray(phi)))
+    assert np.all(g == 0) and np.all(g_op == 0)
+    # a generic pair of fields keeps its interior points, compiled as op by op
+    phi2 = phi.copy()
+    phi2[:, 2] = rng.uniform(-0.08, 0.08, size=3 * T)
+    p2, w2 = jax.jit(lambda phi: central_candidates(jnp.asarray(x), phi, idx, 0.1, jnp))(phi2)
+    with jax.disable_jit():
+        p2_op, w2_op = central_candidates(jnp.asarray(x), jnp.asarray(phi2), idx, 0.1, jnp)
+    assert np.count_nonzero(np.asarray(w2)) > 0
+    np.testing.assert_allclose(np.asarray(w2), np.asarray(w2_op), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(p2), np.asarray(p2_op), rtol=1e-9, atol=1e-9)

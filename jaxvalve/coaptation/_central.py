@@ -76,8 +76,11 @@ def central_candidates(x, phi, index, eps, xp):
     sc = xp.sum(cv, axis=-1)
     xt = x[tris]
     area2 = _norm(xp.cross(xt[:, 1] - xt[:, 0], xt[:, 2] - xt[:, 0]), xp)
-    # nearly parallel level lines meet far outside the triangle: no candidate
-    ok = (xp.abs(sc) > 1e-9 * xp.sum(xp.abs(cv), axis=-1)) & (area2 > 0)
+    # nearly parallel level lines meet far outside the triangle: no candidate.  The test
+    # is relative to |fx| |fy|, not to |cv|: for parallel or equal fields, cv is rounding
+    # error only (compiled code contracts a*b - c*d into FMAs, so fx x fx need not be 0),
+    # and cv / sc would be a ratio of rounding errors with derivatives ~1/sc (~1e18)
+    ok = (xp.abs(sc) > 1e-9 * _norm(fx, xp) * _norm(fy, xp)) & (area2 > 0)
     lam = sdiv(cv, xp.where(ok, sc, 0.0)[:, None], xp)
     pt = xp.sum(lam[..., None] * xt, axis=1)
     if eps is None:
