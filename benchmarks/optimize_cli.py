@@ -31,19 +31,27 @@ import tempfile
 import time
 from pathlib import Path
 
+from jaxvalve.xla_setup import platform_summary
+
 ROOT = Path(__file__).resolve().parents[1]
 TARGET_S = 60.0
 CLI = "import sys; from jaxvalve.cli import main; sys.exit(main(sys.argv[1:]))"
 
 
-def run_once(cache: Path, out: Path, extra) -> dict:
-    env = dict(os.environ, JAXVALVE_CACHE_DIR=str(cache))
+def run_cli(argv, env, out: Path) -> float:
+    """Run ``jaxvalve ARGV --out OUT`` in a fresh process with ``env``; its wall time (s).
+    Exits with the command's output when it fails."""
     t0 = time.perf_counter()
-    p = subprocess.run([sys.executable, "-c", CLI, "optimize", "--out", str(out),
-                        *extra], cwd=ROOT, env=env, capture_output=True, text=True)
+    p = subprocess.run([sys.executable, "-c", CLI, *argv, "--out", str(out)], cwd=ROOT,
+                       env=env, capture_output=True, text=True)
     wall = time.perf_counter() - t0
     if p.returncode != 0:
-        raise SystemExit(f"jaxvalve optimize exited {p.returncode}:\n{p.stdout}\n{p.stderr}")
+        raise SystemExit(f"jaxvalve {argv[0]} exited {p.returncode}:\n{p.stdout}\n{p.stderr}")
+    return wall
+
+
+def run_once(cache: Path, out: Path, extra) -> dict:
+    wall = run_cli(["optimize", *extra], dict(os.environ, JAXVALVE_CACHE_DIR=str(cache)), out)
     d = json.loads((out / "trajectory.json").read_text())
     st, last = d["status"], d["records"][-1]
     chk = st.get("check") or {}
@@ -56,25 +64,9 @@ def run_once(cache: Path, out: Path, extra) -> dict:
 
 def reference(tmp: Path) -> dict:
     """Solve and compile seconds of a cold ``jaxvalve simulate`` (machine-speed reference)."""
-    env = dict(os.environ, JAXVALVE_CACHE_DIR="off")
-    t0 = time.perf_counter()
-    p = subprocess.run([sys.executable, "-c", CLI, "simulate", "--out", str(tmp / "sim")],
-                       cwd=ROOT, env=env, capture_output=True, text=True)
-    wall = time.perf_counter() - t0
-    if p.returncode != 0:
-        raise SystemExit(f"jaxvalve simulate exited {p.returncode}:\n{p.stdout}\n{p.stderr}")
+    wall = run_cli(["simulate"], dict(os.environ, JAXVALVE_CACHE_DIR="off"), tmp / "sim")
     t = json.loads((tmp / "sim" / "metrics.json").read_text())["timings"]
     return dict(wall=wall, solve=t["solve"], compile=t["compile"])
-
-
-def cpu_name() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return "unknown CPU"
 
 
 def main(argv=None):
@@ -84,14 +76,16 @@ def main(argv=None):
     ap.add_argument("--no-reference", action="store_true",
                     help="skip the machine-speed reference (a cold jaxvalve simulate)")
     args = ap.parse_args(argv)
+    if args.runs < 1:
+        ap.error(f"--runs must be at least 1; got {args.runs}")
     extra = ["--no-check"] if args.no_check else []
     with tempfile.TemporaryDirectory(prefix="jaxvalve_cli_") as tmp:
         cache = Path(tmp) / "xla"
         rows = [run_once(cache, Path(tmp) / f"run{k}", extra) for k in range(args.runs)]
         ref = None if args.no_reference else reference(Path(tmp))
-    print(f"jaxvalve optimize (defaults{', --no-check' if extra else ''}), {os.cpu_count()} "
-          f"CPUs ({cpu_name()}); run 1 with an empty compilation cache, later runs with it "
-          f"filled")
+    print(f"jaxvalve optimize (defaults{', --no-check' if extra else ''}); run 1 with an "
+          f"empty compilation cache, later runs with it filled")
+    print(f"platform: {platform_summary()}")
     print(f"{'run':>3} {'cache':>6} {'wall s':>7} {'clock s':>8} {'compile s':>9} "
           f"{'last it s':>9} {'rest s':>7} {'iters':>5} {'objective':>10} {'check gap':>9}")
     for k, r in enumerate(rows):

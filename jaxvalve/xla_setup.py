@@ -40,6 +40,33 @@ def ynn_disabled() -> bool:
     return NO_YNN_FLAG in os.environ.get("XLA_FLAGS", "").split()
 
 
+def platform_summary() -> str:
+    """One line naming the jax and jaxlib releases, the CPU (model, cores, ISA, from
+    /proc/cpuinfo where there is one) and ``XLA_FLAGS``, so that a timing or a test
+    failure can be matched to its machine (test logs, `benchmarks/optimize_cli.py`)."""
+    import platform
+
+    import jax
+    import jaxlib
+
+    model, flags = platform.processor() or platform.machine(), set()
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                key, _, value = line.partition(":")
+                if key.strip() == "model name":
+                    model = value.strip()
+                elif key.strip() == "flags":
+                    flags = set(value.split())
+                    break
+    except OSError:
+        pass
+    isa = "/".join(n for n in ("avx512f", "avx2", "avx", "fma") if n in flags) or "unknown"
+    return (f"jax {jax.__version__}, jaxlib {jaxlib.__version__}, {model}, "
+            f"{os.cpu_count()} cores, ISA {isa}, "
+            f"XLA_FLAGS={os.environ.get('XLA_FLAGS', '')!r}")
+
+
 def configure() -> None:
     """Add `NO_YNN_FLAG` to ``XLA_FLAGS`` (unless opted out) and warn about a known
     miscompiling jax release.  Called once, by ``import jaxvalve``."""

@@ -11,7 +11,7 @@ import os
 #: and the CLI keep XLA's defaults.  JAXVALVE_TEST_DEFAULT_EMITTERS=1 runs the suite on
 #: the defaults.  Set before JAX starts its CPU backend (xdist workers import this too),
 #: the same way `import jaxvalve` adds its own flag (`jaxvalve.xla_setup.add_flag`).
-from jaxvalve.xla_setup import add_flag
+from jaxvalve.xla_setup import add_flag, platform_summary
 
 if os.environ.get("JAXVALVE_TEST_DEFAULT_EMITTERS") != "1":
     add_flag("--xla_cpu_use_fusion_emitters=false")
@@ -72,32 +72,10 @@ def pytest_configure(config):
     enable_compilation_cache()
 
 
-def _cpu_summary():
-    """'model, N cores, ISA' of this machine's CPU, from /proc/cpuinfo (Linux) or platform."""
-    import platform
-    model, flags = platform.processor() or platform.machine(), set()
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                key, _, value = line.partition(":")
-                if key.strip() == "model name":
-                    model = value.strip()
-                elif key.strip() == "flags":
-                    flags = set(value.split())
-                    break
-    except OSError:
-        pass
-    isa = [name for name in ("avx512f", "avx2", "avx", "fma") if name in flags]
-    return f"{model}, {os.cpu_count()} cores, ISA {'/'.join(isa) or 'unknown'}"
-
-
 def pytest_terminal_summary(terminalreporter):
     """One line naming the platform, so that a failure on another machine (the CI's) can be
     matched to its CPU and JAX release."""
-    import jaxlib
-    terminalreporter.write_line(
-        f"jaxvalve test platform: jax {jax.__version__}, jaxlib {jaxlib.__version__}, "
-        f"{_cpu_summary()}, XLA_FLAGS={os.environ.get('XLA_FLAGS', '')!r}")
+    terminalreporter.write_line(f"jaxvalve test platform: {platform_summary()}")
 
 
 def pytest_unconfigure(config):

@@ -108,3 +108,14 @@ def test_jitted_force_and_stretch_check_match_op_by_op(bulged, mat, admissible):
     np.testing.assert_array_equal(np.isfinite(np.asarray(W_jit)), finite)
     np.testing.assert_allclose(np.asarray(W_jit)[finite], np.asarray(W_eager)[finite], rtol=1e-12)
     assert np.all(finite) == admissible and np.any(finite)   # past the limit: some, not all
+
+
+def test_platform_summary_names_the_releases_cores_and_flags():
+    """The line the test run ends with and `benchmarks/optimize_cli.py` prints."""
+    import jaxlib
+
+    line = xla_setup.platform_summary()
+    assert line.startswith(f"jax {jax.__version__}, jaxlib {jaxlib.__version__}, ")
+    assert f", {os.cpu_count()} cores, ISA " in line
+    assert line.endswith(f"XLA_FLAGS={os.environ.get('XLA_FLAGS', '')!r}")
+    assert xla_setup.NO_YNN_FLAG in line
