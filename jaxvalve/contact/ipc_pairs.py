@@ -1,0 +1,199 @@
+"""Broad phase of the barrier contact: point-triangle and edge-edge pairs between leaflets.
+
+Host side (NumPy and scipy's k-d tree), run once per Newton iteration by the barrier
+closure (`jaxvalve.solvers.barrier_newton`), whose steps are taken on the host anyway.
+`barrier_topology` is built once per valve; `build_pairs(topo, x, cutoff)` lists every
+node-triangle and edge-edge pair of different leaflets closer than ``cutoff`` (mm) in the
+state x (N, 3), with its squared distance: exact, not a bounding-volume superset.
+
+Excluded pairs: those whose nodes are all sutured (fixed; they exert no force on a free
+node), and those whose two sides share a *pin*, a sutured point where two leaflets are sewn
+to the same commissure: such elements touch by construction (distance 0) and their contact
+is the suture's, not the barrier's.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..errors import ParameterError
+from ..mesh import unique_edges
+from .ipc_distance import (mollifier_threshold, point_triangle_distance2_np,
+                           segment_distance2_np)
+
+__all__ = ["BarrierTopology", "BarrierPairs", "barrier_topology", "build_pairs",
+           "pair_distances2"]
+
+
+@dataclasses.dataclass(frozen=True)
+class BarrierTopology:
+    """Static data of the barrier contact (NumPy).
+
+    triangles (M, 3), edges (E, 2) int; body (N,), tri_body (M,), edge_body (E,) leaflet
+    ids; node_w (N,) mm^2 (a_p / 2) and edge_w (E,) mm^2 (A_e / 4) the collision weights
+    (`jaxvalve.contact.barrier`); edge_eps (E,) mm^2, the edges' squared rest lengths (the
+    mollifier threshold of a pair is 1e-3 la^2 lb^2); pin (N,) int, the commissure point a
+    sutured node is sewn to, or -1; fixed (N,) bool."""
+
+    triangles: np.ndarray
+    edges: np.ndarray
+    body: np.ndarray
+    tri_body: np.ndarray
+    edge_body: np.ndarray
+    node_w: np.ndarray
+    edge_w: np.ndarray
+    edge_len2: np.ndarray
+    pin: np.ndarray
+    fixed: np.ndarray
+
+    @property
+    def n_nodes(self):
+        return self.body.shape[0]
+
+
+@dataclasses.dataclass(frozen=True)
+class BarrierPairs:
+    """Pairs within a cutoff at one state (NumPy).
+
+    pt (P, 4) [node, t0, t1, t2]; pt_w (P,) mm^2; pt_d2 (P,) mm^2 squared distance at the
+    state of the build.  ee (Q, 4) [a0, a1, b0, b1]; ee_w (Q,) mm^2; ee_eps (Q,) mm^4
+    mollifier thresholds; ee_d2 (Q,) mm^2.  cutoff (mm)."""
+
+    pt: np.ndarray
+    pt_w: np.ndarray
+    pt_d2: np.ndarray
+    ee: np.ndarray
+    ee_w: np.ndarray
+    ee_eps: np.ndarray
+    ee_d2: np.ndarray
+    cutoff: float
+
+    @property
+    def min_distance(self) -> float:
+        """Smallest distance (mm) of any pair, +inf without pairs."""
+        d2 = np.concatenate([self.pt_d2, self.ee_d2, [np.inf]])
+        return float(np.sqrt(np.min(d2)))
+
+    def within(self, d2_pt, d2_ee, cutoff):
+        """The pairs whose squared distances (given, at another state) are < cutoff^2."""
+        a, b = d2_pt < cutoff * cutoff, d2_ee < cutoff * cutoff
+        return BarrierPairs(self.pt[a], self.pt_w[a], d2_pt[a], self.ee[b], self.ee_w[b],
+                            self.ee_eps[b], d2_ee[b], float(cutoff))
+
+
+def barrier_topology(triangles, body, ref, fixed, x0, pin_tol=1e-9) -> BarrierTopology:
+    """`BarrierTopology` of a membrane of several bodies: triangles (M, 3), body (N,),
+    reference coordinates ref (N, 2|3) mm (the weights and rest lengths), fixed (N,) bool,
+    and the initial state x0 (N, 3) mm, where sutured nodes of different bodies that
+    coincide (within pin_tol mm) are pinned together."""
+    tri = np.asarray(triangles, np.int64)
+    body = np.asarray(body, np.int64)
+    ref = np.asarray(ref, float)
+    fixed = np.asarray(fixed, bool)
+    x0 = np.asarray(x0, float)
+    n = body.shape[0]
+    X = ref if ref.shape[1] == 3 else np.column_stack([ref, np.zeros(n)])
+    area = 0.5 * np.linalg.norm(np.cross(X[tri[:, 1]] - X[tri[:, 0]],
+                                         X[tri[:, 2]] - X[tri[:, 0]]), axis=1)
+    node_a = np.zeros(n)
+    np.add.at(node_a, tri, np.repeat(area[:, None] / 3.0, 3, axis=1))
+    edges, tri_edge = unique_edges(tri)
+    edges = edges.astype(np.int64)
+    edge_a = np.zeros(len(edges))
+    np.add.at(edge_a, tri_edge, np.repeat(area[:, None] / 3.0, 3, axis=1))
+    len2 = np.sum((X[edges[:, 1]] - X[edges[:, 0]]) ** 2, axis=1)
+    pin = np.full(n, -1, np.int64)
+    idx = np.flatnonzero(fixed)
+    if idx.size:
+        pairs = cKDTree(x0[idx]).query_pairs(pin_tol, output_type="ndarray")
+        pairs = pairs[body[idx[pairs[:, 0]]] != body[idx[pairs[:, 1]]]]
+        for k, (i, j) in enumerate(pairs):
+            a, b = idx[i], idx[j]
+            p = max(pin[a], pin[b])
+            p = k if p < 0 else p
+            pin[a] = pin[b] = p
+    return BarrierTopology(triangles=tri, edges=edges, body=body, tri_body=body[tri[:, 0]],
+                           edge_body=body[edges[:, 0]], node_w=node_a / 2.0,
+                           edge_w=edge_a / 4.0, edge_len2=len2, pin=pin, fixed=fixed)
+
+
+def _shares_pin(pin, a, b):
+    """(K,) True where some pinned node of the rows a (K, i) is pinned with one of b (K, j)."""
+    pa, pb = pin[a], pin[b]
+    eq = (pa[:, :, None] == pb[:, None, :]) & (pa[:, :, None] >= 0)
+    return np.any(eq, axis=(1, 2))
+
+
+def _ball_pairs(tree_pts, query_pts, radius):
+    """(K, 2) [query index, tree index] of points within radius."""
+    if len(tree_pts) == 0 or len(query_pts) == 0:
+        return np.zeros((0, 2), np.int64)
+    res = cKDTree(tree_pts).query_ball_point(query_pts, radius, return_sorted=False)
+    counts = np.fromiter((len(r) for r in res), np.int64, len(res))
+    if counts.sum() == 0:
+        return np.zeros((0, 2), np.int64)
+    q = np.repeat(np.arange(len(res)), counts)
+    t = np.concatenate([np.asarray(r, np.int64) for r in res if len(r)])
+    return np.column_stack([q, t])
+
+
+def pair_distances2(x, pt, ee):
+    """Squared distances (mm^2) of point-triangle rows pt (P, 4) and edge-edge rows ee
+    (Q, 4) at the state x (N, 3)."""
+    x = np.asarray(x, float)
+    d_pt = point_triangle_distance2_np(x[pt[:, 0]], x[pt[:, 1]], x[pt[:, 2]], x[pt[:, 3]])
+    d_ee = segment_distance2_np(x[ee[:, 0]], x[ee[:, 1]], x[ee[:, 2]], x[ee[:, 3]])
+    return d_pt, d_ee
+
+
+def build_pairs(topo: BarrierTopology, x, cutoff: float) -> BarrierPairs:
+    """Every point-triangle and edge-edge pair of different bodies closer than cutoff (mm)
+    in the state x (N, 3), less the excluded ones (module docstring)."""
+    x = np.asarray(x, float)
+    if not np.all(np.isfinite(x)):
+        raise ParameterError("x holds non-finite positions; contact needs finite coordinates")
+    cutoff = float(cutoff)
+    if not cutoff > 0:
+        raise ParameterError(f"cutoff must be > 0 mm; got {cutoff}")
+    tri, edges = topo.triangles, topo.edges
+    xt = x[tri]
+    cen = xt.mean(axis=1)
+    rad = np.sqrt(np.max(np.sum((xt - cen[:, None]) ** 2, axis=2)))
+    # point-triangle: nodes against triangle centroids, then the exact distance
+    cand = _ball_pairs(cen, x, cutoff + rad)
+    node, t = cand[:, 0], cand[:, 1]
+    keep = topo.body[node] != topo.tri_body[t]
+    node, t = node[keep], t[keep]
+    rows = np.column_stack([node, tri[t]])
+    keep = ~(topo.fixed[node] & np.all(topo.fixed[tri[t]], axis=1))
+    keep &= ~_shares_pin(topo.pin, rows[:, :1], rows[:, 1:])
+    rows = rows[keep]
+    d2 = point_triangle_distance2_np(x[rows[:, 0]], x[rows[:, 1]], x[rows[:, 2]],
+                                     x[rows[:, 3]])
+    sel = d2 < cutoff * cutoff
+    pt, pt_d2 = rows[sel], d2[sel]
+    # edge-edge: each body's edges against the edges of the bodies after it
+    mid = 0.5 * (x[edges[:, 0]] + x[edges[:, 1]])
+    half = 0.5 * np.sqrt(np.max(np.sum((x[edges[:, 1]] - x[edges[:, 0]]) ** 2, axis=1)))
+    out = []
+    for b in np.unique(topo.edge_body):
+        mine = np.flatnonzero(topo.edge_body == b)
+        later = np.flatnonzero(topo.edge_body > b)
+        c = _ball_pairs(mid[mine], mid[later], cutoff + 2 * half)
+        out.append(np.column_stack([mine[c[:, 1]], later[c[:, 0]]]))
+    ea_eb = np.concatenate(out) if out else np.zeros((0, 2), np.int64)
+    rows = np.column_stack([edges[ea_eb[:, 0]], edges[ea_eb[:, 1]]])
+    keep = ~np.all(topo.fixed[rows], axis=1)
+    keep &= ~_shares_pin(topo.pin, rows[:, :2], rows[:, 2:])
+    rows, ea_eb = rows[keep], ea_eb[keep]
+    d2 = segment_distance2_np(x[rows[:, 0]], x[rows[:, 1]], x[rows[:, 2]], x[rows[:, 3]])
+    sel = d2 < cutoff * cutoff
+    ee, ee_d2, ea_eb = rows[sel], d2[sel], ea_eb[sel]
+    return BarrierPairs(
+        pt=pt, pt_w=topo.node_w[pt[:, 0]], pt_d2=pt_d2, ee=ee,
+        ee_w=topo.edge_w[ea_eb[:, 0]] + topo.edge_w[ea_eb[:, 1]],
+        ee_eps=mollifier_threshold(np.sqrt(topo.edge_len2[ea_eb[:, 0]]),
+                                   np.sqrt(topo.edge_len2[ea_eb[:, 1]])),
+        ee_d2=ee_d2, cutoff=cutoff)

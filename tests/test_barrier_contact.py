@@ -1,0 +1,231 @@
+"""The IPC barrier contact: distances, barrier, broad phase and CCD, checked against the IPC
+toolkit (``ipctk``, an independent C++ implementation) and against brute force."""
+import numpy as np
+import pytest
+import jax
+import jax.numpy as jnp
+
+ipctk = pytest.importorskip("ipctk")
+
+from jaxvalve.contact import ccd  # noqa: E402
+from jaxvalve.contact import ipc_distance as D  # noqa: E402
+from jaxvalve.contact.barrier import BarrierContact, barrier, ee_energies, pt_energies  # noqa: E402
+from jaxvalve.contact.ipc_pairs import barrier_topology, build_pairs  # noqa: E402
+from jaxvalve.errors import ParameterError  # noqa: E402
+
+RNG = np.random.default_rng(7)
+PT_TYPES = {ipctk.PointTriangleDistanceType.P_T: 0, ipctk.PointTriangleDistanceType.P_E0: 1,
+            ipctk.PointTriangleDistanceType.P_E1: 2, ipctk.PointTriangleDistanceType.P_E2: 3,
+            ipctk.PointTriangleDistanceType.P_T0: 4, ipctk.PointTriangleDistanceType.P_T1: 5,
+            ipctk.PointTriangleDistanceType.P_T2: 6}
+
+
+def _pt_d2(v12):
+    v = v12.reshape(4, 3)
+    return D.point_triangle_distance2(v[0], v[1], v[2], v[3])
+
+
+def _ee_d2(v12):
+    v = v12.reshape(4, 3)
+    return D.edge_edge_distance2(v[0], v[1], v[2], v[3])
+
+
+_pt_all = jax.jit(jax.vmap(lambda v: (_pt_d2(v), jax.grad(_pt_d2)(v), jax.hessian(_pt_d2)(v))))
+_ee_all = jax.jit(jax.vmap(lambda v: (_ee_d2(v), jax.grad(_ee_d2)(v), jax.hessian(_ee_d2)(v))))
+
+
+def test_point_triangle_distance_gradient_hessian_match_ipctk():
+    """Every distance type occurs; types, squared distances, gradients and Hessians agree
+    with ipctk's to rounding."""
+    V = RNG.normal(size=(400, 4, 3))
+    d2, g, H = (np.asarray(a) for a in _pt_all(jnp.asarray(V.reshape(-1, 12))))
+    codes = np.asarray(D.point_triangle_type(*(jnp.asarray(V[:, k]) for k in range(4))))
+    assert set(codes.tolist()) == set(range(7))
+    for k, v in enumerate(V):
+        assert codes[k] == PT_TYPES[ipctk.point_triangle_distance_type(*v)]
+        ref = ipctk.point_triangle_distance(*v)
+        np.testing.assert_allclose(d2[k], ref, rtol=1e-11)
+        np.testing.assert_allclose(g[k], ipctk.point_triangle_distance_gradient(*v),
+                                   rtol=1e-9, atol=1e-11)
+        np.testing.assert_allclose(H[k], ipctk.point_triangle_distance_hessian(*v),
+                                   rtol=1e-8, atol=1e-10)
+        np.testing.assert_allclose(D.point_triangle_distance2_np(*v), ref, rtol=1e-11)
+
+
+def test_edge_edge_distance_gradient_hessian_match_ipctk():
+    V = RNG.normal(size=(400, 4, 3))
+    d2, g, H = (np.asarray(a) for a in _ee_all(jnp.asarray(V.reshape(-1, 12))))
+    ka, kb = (np.asarray(a) for a in D.edge_edge_type(*(jnp.asarray(V[:, k]) for k in range(4))))
+    assert np.any((ka == 2) & (kb == 2)) and np.any((ka < 2) & (kb < 2))
+    assert np.any((ka == 2) != (kb == 2))
+    for k, v in enumerate(V):
+        ref = ipctk.edge_edge_distance(*v)
+        np.testing.assert_allclose(d2[k], ref, rtol=1e-10)
+        np.testing.assert_allclose(D.segment_distance2_np(*v), ref, rtol=1e-10)
+        np.testing.assert_allclose(g[k], ipctk.edge_edge_distance_gradient(*v),
+                                   rtol=1e-8, atol=1e-10)
+        np.testing.assert_allclose(H[k], ipctk.edge_edge_distance_hessian(*v),
+                                   rtol=1e-7, atol=1e-9)
+
+
+def test_barrier_and_mollifier_match_ipctk():
+    """B(z) d_hat^4 is the toolkit's barrier of the squared distance; the law's pair
+    energy is its 'physical' barrier (divided by d_hat^3); the mollifier is the toolkit's."""
+    dhat = 0.2
+    for d in (0.01, 0.05, 0.13, 0.199, 0.25):
+        z = d * d / dhat ** 2
+        ref = ipctk.barrier(d * d, dhat * dhat)
+        np.testing.assert_allclose(float(barrier(z)) * dhat ** 4, ref, rtol=1e-12, atol=1e-300)
+    V = RNG.normal(size=(200, 4, 3))
+    V[:50, 3] = V[:50, 2] + (V[:50, 1] - V[:50, 0]) * 0.7 + 1e-3 * RNG.normal(size=(50, 3))
+    for v in V:
+        eps = D.mollifier_threshold(np.linalg.norm(v[1] - v[0]), np.linalg.norm(v[3] - v[2]))
+        x = float(D.edge_edge_cross2(*map(jnp.asarray, v)))
+        np.testing.assert_allclose(float(D.mollifier(x, eps)),
+                                   ipctk.edge_edge_mollifier(*v, eps), rtol=1e-10)
+
+
+def test_barrier_is_c2_at_the_activation_distance():
+    """B, B' and B'' tend to 0 as z -> 1 from below (B ~ (1 - z)^3, B'' ~ 6 (1 - z)), and
+    vanish above."""
+    f = lambda z: barrier(z)
+    d1, d2 = jax.grad(f), jax.grad(jax.grad(f))
+    for z in (1 - 1e-4, 1 - 1e-6):
+        assert abs(float(f(z))) < 1e-11 and abs(float(d1(z))) < 1e-7
+        np.testing.assert_allclose(float(d2(z)), 6.0 * (1.0 - z), rtol=1e-3)
+    for z in (1.0, 1.5):
+        assert float(f(z)) == 0.0 and float(d1(z)) == 0.0 and float(d2(z)) == 0.0
+
+
+def _barrier_derivatives(z):
+    """B, B', B'' of B(z) = -(z - 1)^2 ln z, written out by hand."""
+    u, lz = z - 1.0, np.log(z)
+    return -u * u * lz, -2.0 * u * lz - u * u / z, -2.0 * lz - 4.0 * u / z + u * u / (z * z)
+
+
+def _pair_energy_np(law, v, kind, w):
+    """One pair's energy, gradient and Hessian composed from ipctk's distance derivatives
+    and the barrier's hand-written derivatives in z (chain rule)."""
+    dh2 = law.dhat ** 2
+    if kind == "pt":
+        d2, g, H = (ipctk.point_triangle_distance(*v), ipctk.point_triangle_distance_gradient(*v),
+                    ipctk.point_triangle_distance_hessian(*v))
+    else:
+        d2, g, H = (ipctk.edge_edge_distance(*v), ipctk.edge_edge_distance_gradient(*v),
+                    ipctk.edge_edge_distance_hessian(*v))
+    b0, b1, b2 = _barrier_derivatives(d2 / dh2)
+    c = law.stiffness * law.dhat * w
+    return c * b0, c * b1 * g / dh2, c * (b2 * np.outer(g, g) / dh2 ** 2 + b1 * H / dh2)
+
+
+def test_pair_energies_gradients_hessians_match_ipctk_composition():
+    law = BarrierContact(dhat=0.3, stiffness=2e-3)
+    loc = jnp.arange(4)[None]
+    energy = {"pt": lambda x12: pt_energies(law, x12.reshape(4, 3), loc, jnp.ones(1))[0],
+              "ee": lambda x12: ee_energies(law, x12.reshape(4, 3), loc, jnp.ones(1),
+                                            jnp.full(1, 1e-12))[0]}
+    for kind in ("pt", "ee"):
+        e = energy[kind]
+        V = RNG.normal(size=(300, 4, 3)) * 0.15
+        V[:, 0] += 0.05
+        dist = ipctk.point_triangle_distance if kind == "pt" else ipctk.edge_edge_distance
+        d2 = np.array([dist(*v) for v in V])
+        V = V[(d2 > 1e-4) & (d2 < 0.8 * law.dhat ** 2)]
+        assert len(V) > 20
+        E, G, H = (np.asarray(a) for a in jax.jit(jax.vmap(
+            lambda x: (e(x), jax.grad(e)(x), jax.hessian(e)(x))))(jnp.asarray(V.reshape(-1, 12))))
+        for k, v in enumerate(V):
+            E0, G0, H0 = _pair_energy_np(law, v, kind, 1.0)
+            np.testing.assert_allclose(E[k], E0, rtol=1e-9)
+            np.testing.assert_allclose(G[k], G0, rtol=1e-7, atol=1e-9 * np.abs(G0).max())
+            np.testing.assert_allclose(H[k], H0, rtol=1e-6, atol=1e-8 * np.abs(H0).max())
+
+
+def _two_sheets(n=6, gap=0.3, shift=(0.13, 0.07)):
+    """Two parallel square sheets (bodies 0, 1) of n x n nodes, 1 mm wide, gap apart."""
+    g = np.linspace(0.0, 1.0, n)
+    X, Y = np.meshgrid(g, g, indexing="ij")
+    p = np.column_stack([X.ravel(), Y.ravel(), np.zeros(n * n)])
+    tri = []
+    for i in range(n - 1):
+        for j in range(n - 1):
+            a, b, c, d = i * n + j, (i + 1) * n + j, (i + 1) * n + j + 1, i * n + j + 1
+            tri += [[a, b, c], [a, c, d]]
+    tri = np.asarray(tri)
+    q = p + np.array([shift[0], shift[1], gap])
+    x = np.concatenate([p, q])
+    triangles = np.concatenate([tri, tri + n * n])
+    body = np.repeat([0, 1], n * n)
+    return x, triangles, body
+
+
+def test_broad_phase_equals_brute_force():
+    x, tri, body = _two_sheets(gap=0.15)
+    x = x + 0.05 * RNG.normal(size=x.shape)
+    fixed = np.zeros(len(x), bool)
+    topo = barrier_topology(tri, body, x[:, :2], fixed, x)
+    cut = 0.3
+    pairs = build_pairs(topo, x, cut)
+    brute_pt = set()
+    for p in range(len(x)):
+        for t in range(len(tri)):
+            if body[p] != body[tri[t, 0]]:
+                if D.point_triangle_distance2_np(x[p], *x[tri[t]]) < cut ** 2:
+                    brute_pt.add((p,) + tuple(tri[t]))
+    assert set(map(tuple, pairs.pt.tolist())) == brute_pt
+    E = topo.edges
+    brute_ee = set()
+    for a in range(len(E)):
+        for b in range(len(E)):
+            if body[E[a, 0]] < body[E[b, 0]]:
+                if D.segment_distance2_np(*x[E[a]], *x[E[b]]) < cut ** 2:
+                    brute_ee.add(tuple(E[a]) + tuple(E[b]))
+    assert set(map(tuple, pairs.ee.tolist())) == brute_ee
+    assert len(brute_pt) > 20 and len(brute_ee) > 20
+
+
+def test_pins_exclude_sewn_points_and_fixed_pairs():
+    """Two sheets sewn at one shared corner: the coincident sutured nodes are pinned, and
+    no pair across the pin (distance 0 by construction) enters the lists."""
+    x, tri, body = _two_sheets(n=4, gap=0.0, shift=(1.0, 1.0))   # corner to corner
+    fixed = np.zeros(len(x), bool)
+    shared = np.flatnonzero(np.isclose(x[:, 0], 1.0) & np.isclose(x[:, 1], 1.0))
+    fixed[shared] = True
+    topo = barrier_topology(tri, body, x[:, :2], fixed, x)
+    assert (topo.pin >= 0).sum() == 2 and len(set(topo.pin[shared])) == 1
+    pairs = build_pairs(topo, x, 0.5)
+    assert pairs.min_distance > 0
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_additive_ccd_never_lets_triangles_cross(seed):
+    """Random moves that drive two sheets through each other: the CCD step keeps every
+    distance positive along the whole move (checked densely with ipctk's distances), it is
+    at most the toolkit's time of impact, and a move away from contact is taken whole."""
+    rng = np.random.default_rng(seed)
+    x, tri, body = _two_sheets(n=5, gap=0.2)
+    x = x + 0.02 * rng.normal(size=x.shape)
+    dx = np.zeros_like(x)
+    dx[body == 1] = [0.1, -0.05, -0.6]
+    dx += 0.05 * rng.normal(size=x.shape)
+    topo = barrier_topology(tri, body, x[:, :2], np.zeros(len(x), bool), x)
+    pairs = build_pairs(topo, x, 2.0 * np.abs(dx).max() * 2 + 0.3)
+    t = ccd.max_step(x, dx, pairs)
+    assert 0.0 < t < 1.0
+    mesh = ipctk.CollisionMesh(x, ipctk.edges(tri.astype(np.int32)), tri.astype(np.int32))
+    toi = ipctk.compute_collision_free_stepsize(mesh, x, x + dx)
+    assert toi < 1.0 and t <= toi
+    for s in np.linspace(0.0, t, 201):
+        xs = x + s * dx
+        d_pt = D.point_triangle_distance2_np(*(xs[pairs.pt[:, k]] for k in range(4)))
+        d_ee = D.segment_distance2_np(*(xs[pairs.ee[:, k]] for k in range(4)))
+        assert min(d_pt.min(), d_ee.min()) > 0
+    assert not ipctk.has_intersections(mesh, x + t * dx)
+    assert ccd.max_step(x, -dx, pairs) == 1.0
+
+
+def test_barrier_contact_rejects_bad_parameters():
+    with pytest.raises(ParameterError, match="dhat"):
+        BarrierContact(dhat=0.0).validate()
+    with pytest.raises(ParameterError, match="stiffness"):
+        BarrierContact(stiffness=float("nan")).validate()
