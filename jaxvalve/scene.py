@@ -28,7 +28,7 @@ BENCHMARK_TEMPLATE = Template(r=12.0, a=7.1, b=15.0, alpha=160.0)
 BENCHMARK_H = 0.88
 MODELS = ("mass-spring", "stvk", "neo-hookean", "gent")
 SOLVERS = ("fire", "newton", "paper")
-CONTACTS = ("smooth", "paper")
+CONTACTS = ("smooth", "paper", "barrier")
 PRECISIONS = ("float64", "float32")
 
 
@@ -37,6 +37,10 @@ PRECISIONS = ("float64", "float32")
 #: the benchmark valve (h = 1.5 mm, StVK and neo-Hookean, 3 and 80 mmHg); 2.0 made the
 #: StVK closure at 80 mmHg take 46 % more.
 VALVE_DT_MAX = 1.5
+
+#: Newton iterations of a barrier closure at most (``max_steps`` caps it lower): the
+#: benchmark valve takes 50-130 (`benchmarks/closure_speed.py`).
+BARRIER_NEWTON_STEPS = 500
 
 
 @dataclasses.dataclass(frozen=True)
@@ -93,6 +97,14 @@ class Scene:
             raise ParameterError(f"solver must be one of {SOLVERS}; got {self.solver!r}")
         if self.contact not in CONTACTS:
             raise ParameterError(f"contact must be one of {CONTACTS}; got {self.contact!r}")
+        if self.contact == "barrier" and self.solver != "newton":
+            raise ParameterError("contact='barrier' (IPC barrier, intersection-free) is solved "
+                                 "by solver='newton' (the projected Newton of "
+                                 "jaxvalve.solvers.barrier_newton); got solver="
+                                 f"{self.solver!r}")
+        if self.contact == "barrier" and self.precision != "float64":
+            raise ParameterError("contact='barrier' runs in float64 only (precision="
+                                 f"{self.precision!r} given)")
         if self.precision not in PRECISIONS:
             raise ParameterError(f"precision must be one of {PRECISIONS}; "
                                  f"got {self.precision!r}")
@@ -157,8 +169,10 @@ class Scene:
         return read_root(surface, landmarks)
 
     def contact_law(self):
-        from .contact import PaperContact
+        from .contact import BarrierContact, PaperContact
         from .valve import valve_contact
+        if self.contact == "barrier":
+            return BarrierContact()
         return valve_contact() if self.contact == "smooth" else PaperContact()
 
     def bending_law(self):
@@ -167,7 +181,10 @@ class Scene:
         return Bending(float(self.bending)) if self.bending > 0 else None
 
     def make_solver(self):
-        from .solvers import FIRE, FixedPoint, NewtonKrylov
+        from .solvers import FIRE, BarrierNewton, FixedPoint, NewtonKrylov
+        if self.contact == "barrier":
+            return BarrierNewton(rtol=self.rtol, max_steps=min(self.max_steps,
+                                                                BARRIER_NEWTON_STEPS))
         if self.solver == "fire":
             return FIRE(rtol=self.rtol, max_steps=self.max_steps, dt_max=VALVE_DT_MAX)
         if self.solver == "newton":

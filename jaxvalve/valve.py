@@ -69,6 +69,15 @@ class Valve:
         return np.asarray(self.problem.body)
 
     @functools.cached_property
+    def barrier_topology(self):
+        """`jaxvalve.contact.ipc_pairs.BarrierTopology` of the three leaflets (barrier
+        contact): weights, edges, and the commissure pins where neighbours are sewn to one
+        point."""
+        from .contact.ipc_pairs import barrier_topology
+        return barrier_topology(self.triangles, self.body, np.asarray(self.ref),
+                                np.asarray(self.problem.fixed), self.x_placed)
+
+    @functools.cached_property
     def skin(self) -> float:
         """Verlet skin (mm) of the contact pair lists: the leaflet mesh's median edge,
         at most 1 mm (`equilibrium.mesh_skin`)."""
@@ -147,8 +156,20 @@ def close(valve: Valve, material, pressure_mmhg=80.0, *, solver=None, contact=No
     overflow and recompile."""
     params = valve.params(material, pressure_mmhg, contact, thickness, fibre_angle, bending)
     x0 = valve.x_start if x0 is None else x0
-    sol = equilibrium.solve(valve.problem, params, jnp.asarray(x0), solver,
-                            throw=throw and not check_state, nbrs=nbrs, skin=valve.skin)
+    if getattr(params.contact, "barrier", False):
+        from .solvers import BarrierNewton, solve_barrier
+        solver = BarrierNewton() if solver is None else solver
+        if not isinstance(solver, BarrierNewton):
+            raise ParameterError("the barrier contact is solved by BarrierNewton; got "
+                                 f"{type(solver).__name__}")
+        sol, _ = solve_barrier(valve.problem, params, np.asarray(x0, np.float64), solver,
+                               valve.barrier_topology)
+        if throw and not check_state and not sol.converged:
+            raise ConvergenceError(f"valve closure at {pressure_mmhg:g} mmHg did not "
+                                   f"converge: {sol.describe()}", sol)
+    else:
+        sol = equilibrium.solve(valve.problem, params, jnp.asarray(x0), solver,
+                                throw=throw and not check_state, nbrs=nbrs, skin=valve.skin)
     if check_state and sol.converged:
         code = state_failure(valve, sol.x)
         if code is not None:

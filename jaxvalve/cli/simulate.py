@@ -92,8 +92,9 @@ def add_scene_arguments(p):
                            help="material law (default stvk)")
         if title == "solver and metrics":
             g.add_argument("--contact", choices=CONTACTS,
-                           help="contact law: smooth (one-sided penalty) or paper "
-                                "(default smooth)")
+                           help="contact law: smooth (one-sided penalty), paper, or "
+                                "barrier (IPC log barrier, leaflets never cross; with "
+                                "--solver newton) (default smooth)")
             g.add_argument("--solver", choices=SOLVERS,
                            help="equilibrium solver (default fire)")
             g.add_argument("--precision", choices=PRECISIONS,

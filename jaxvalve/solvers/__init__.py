@@ -1,4 +1,5 @@
 """Equilibrium solvers: the paper's fixed point, FIRE and Newton-Krylov."""
+from .barrier_newton import BarrierNewton, solve_barrier
 from .base import RESULTS, EquilibriumSystem, Solution, Stats, iterate
 from .fire import FIRE
 from .fixed_point import FixedPoint
@@ -6,4 +7,4 @@ from .newton import NewtonKrylov
 from .predictor import BulgePredictor
 
 __all__ = ["RESULTS", "EquilibriumSystem", "Solution", "Stats", "iterate", "FIRE",
-           "FixedPoint", "NewtonKrylov", "BulgePredictor"]
+           "FixedPoint", "NewtonKrylov", "BulgePredictor", "BarrierNewton", "solve_barrier"]

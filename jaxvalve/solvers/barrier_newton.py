@@ -15,7 +15,11 @@ contact (`jaxvalve.contact.ccd`), so the leaflets can never cross.  Each step:
    additive CCD allows on a pair list that holds every pair able to meet on the move; then
    backtracking on the merit  Phi(alpha) = E(x + alpha d) - E(x) - W(alpha),  E the
    conservative energy (strain, bending, barrier) and W the work of the follower pressure
-   along the step, exact by Simpson's rule (the load is quadratic in the positions).
+   along the step, exact by Simpson's rule (the load is quadratic in the positions).  A
+   trial state must also be admissible: finite, inside the material's stretch limit, and
+   without an edge folded past 150 degrees (the bound of `jaxvalve.checks`: without it,
+   long steps on coarse or soft leaflets jumped into creased states, a discretisation
+   artefact the state check rejects).
 4. Stop when ||F_free|| / ||F_pressure|| < rtol.
 
 The solve runs on the host: a Python loop around jitted kernels (energies, forces, element
@@ -26,7 +30,6 @@ is traced.
 from __future__ import annotations
 
 import dataclasses
-import time
 
 import jax
 import jax.numpy as jnp
@@ -38,6 +41,7 @@ from .. import assembly, bending
 from ..contact import ccd
 from ..contact.barrier import ee_energies, pt_energies
 from ..contact.ipc_pairs import BarrierTopology, build_pairs, pair_distances2
+from ..checks import FOLD_DEG
 from ..errors import ParameterError
 from .base import RESULTS, Solution, Stats
 
@@ -55,7 +59,8 @@ class BarrierNewton:
     step may close at most is 1 - ccd_s.  tau0: first pseudo-time step (dimensionless,
     relative to diag(K)).  armijo: sufficient-decrease constant of the line search.
     krylov_below: below this relative residual the direction solves the exact Jacobian
-    by GMRES (relative tolerance krylov_rtol), preconditioned by the projected factor."""
+    by GMRES (relative tolerance krylov_rtol, at most krylov_iters products),
+    preconditioned by the projected factor."""
 
     rtol: float = 1e-6
     max_steps: int = 300
@@ -65,8 +70,8 @@ class BarrierNewton:
     armijo: float = 1e-4
     max_halvings: int = 30
     krylov_below: float = 0.05
-    krylov_rtol: float = 1e-3
-    project_pressure: int = 0
+    krylov_rtol: float = 1e-2
+    krylov_iters: int = 20
 
     def __post_init__(self):
         for name in ("rtol", "dx_max", "ccd_s", "tau0"):
@@ -97,9 +102,11 @@ def _membrane(x, problem, params, ref):
     return e, g, assembly.pressure_force(x, problem.triangles, params.pressure)
 
 
-def _triangle_blocks(x, problem, params, ref, project_pressure):
+@jax.jit
+def _triangle_blocks(x, problem, params, ref):
     """(M, 9, 9): strain Hessian of each triangle projected to PSD, plus the symmetric part
-    of its pressure stiffness (inside the projection with ``project_pressure``)."""
+    of its pressure stiffness, not projected (projecting the sum, or nothing, took more
+    iterations on the benchmark valve: module docstring)."""
     H = assembly._element_hessians(x, problem, params, ref)
 
     def f_p(xe):
@@ -108,11 +115,10 @@ def _triangle_blocks(x, problem, params, ref, project_pressure):
         return params.pressure * jnp.tile(an, 3)
 
     J = jax.vmap(jax.jacfwd(f_p))(x[problem.triangles].reshape(-1, 9))
-    Kp = -0.5 * (J + jnp.swapaxes(J, 1, 2))
-    return jnp.where(project_pressure == 1, _psd(H + Kp),
-                     jnp.where(project_pressure == 0, _psd(H) + Kp, H + Kp))
+    return _psd(H) - 0.5 * (J + jnp.swapaxes(J, 1, 2))
 
 
+@jax.jit
 def _hinge_blocks(x, problem, params, ref, local):
     """(K, 12, 12) bending Hessians per hinge, projected; local (K, 2, 3): the positions of
     each hinge triangle's vertices among the hinge's four nodes."""
@@ -129,18 +135,6 @@ def _hinge_blocks(x, problem, params, ref, local):
 
     xh = x[problem.hinges[:, :4]].reshape(-1, 12)
     return _psd(jax.vmap(jax.hessian(e_h))(xh, ref.hinge_w, local))
-
-
-@jax.jit
-def _membrane_blocks(x, problem, params, ref, local, project_pressure):
-    tb = _triangle_blocks(x, problem, params, ref, project_pressure)
-    hb = (_hinge_blocks(x, problem, params, ref, local) if ref.hinge_w is not None
-          else jnp.zeros((0, 12, 12), x.dtype))
-    return tb, hb
-
-
-def _pair_energy_fn(kind):
-    return pt_energies if kind == "pt" else ee_energies
 
 
 @jax.jit
@@ -256,12 +250,17 @@ class _Model:
                                                                  np.arange(self.nf + 1)),
                     indices=(uniq % self.nf).astype(np.int32), nnz=uniq.size)
 
-    def tangent(self, x, pairs, project_pressure=True):
-        """Projected tangent (nf, nf) CSR over the free dofs at x, with the pair list."""
+    def tangent(self, x, pairs):
+        """Projected tangent (nf, nf) CSR over the free dofs at x, with the pair list.
+
+        Each kernel holds one batched eigendecomposition and is waited for before the next
+        starts: a program with two of them (LAPACK calls that XLA's CPU runtime may run
+        at the same time) hung in a futex wait after 40-120 calls (jaxlib 0.10.1)."""
         xj = jnp.asarray(x)
-        tb, hb = _membrane_blocks(xj, self.problem, self.params, self.ref, self.local,
-                                  project_pressure)
-        data = np.concatenate([np.asarray(tb).reshape(-1), np.asarray(hb).reshape(-1)])
+        tb = np.asarray(_triangle_blocks(xj, self.problem, self.params, self.ref))
+        hb = (np.asarray(_hinge_blocks(xj, self.problem, self.params, self.ref, self.local))
+              if self.ref.hinge_w is not None else np.zeros((0, 12, 12)))
+        data = np.concatenate([tb.reshape(-1), hb.reshape(-1)])
         st = self._static
         vals = np.bincount(st["slot"], weights=data[st["keep"]], minlength=st["nnz"])
         K = sp.csr_matrix((vals, st["indices"], st["indptr"]), shape=(self.nf, self.nf))
@@ -310,9 +309,22 @@ class _Model:
         return bool(_admissible(jnp.asarray(x), self.problem, self.params, self.ref))
 
 
+#: cosine of the fold limit: a step may not turn two triangles that share an edge more
+#: than `jaxvalve.checks.FOLD_DEG` (150 degrees) apart, the state check's bound
+_FOLD_COS = float(np.cos(np.radians(FOLD_DEG)))
+
+
 @jax.jit
 def _admissible(x, problem, params, ref):
-    return assembly.stretch_admissible(x, problem, params, ref) & jnp.all(jnp.isfinite(x))
+    """Finite, inside the material's stretch limit, and no edge folded past FOLD_DEG."""
+    ok = assembly.stretch_admissible(x, problem, params, ref) & jnp.all(jnp.isfinite(x))
+    if problem.hinges is not None and problem.hinges.shape[0]:
+        xt = x[problem.triangles]
+        n = jnp.cross(xt[:, 1] - xt[:, 0], xt[:, 2] - xt[:, 0])
+        n = n / jnp.linalg.norm(n, axis=-1, keepdims=True)
+        c = jnp.sum(n[problem.hinges[:, 4]] * n[problem.hinges[:, 5]], axis=-1)
+        ok = ok & jnp.all(c > _FOLD_COS)
+    return ok
 
 
 # ------------------------------------------------------------------ the solve
@@ -367,7 +379,7 @@ def solve_barrier(problem, params, x0, solver: BarrierNewton, topo: BarrierTopol
             break
         if n == solver.max_steps:
             break
-        K = model.tangent(x, pairs, solver.project_pressure)
+        K = model.tangent(x, pairs)
         diag = K.diagonal()
         A = K + sp.diags(np.maximum(diag, 1e-12 * max(diag.max(), 1e-300)) / tau)
         rhs = F[free].reshape(-1)
@@ -387,7 +399,7 @@ def solve_barrier(problem, params, x0, solver: BarrierNewton, topo: BarrierTopol
             J = spla.LinearOperator(A.shape, matvec=mv, dtype=float)
             M = spla.LinearOperator(A.shape, matvec=lu.solve, dtype=float)
             dk, info = spla.gmres(J, rhs, x0=dfree, M=M, rtol=solver.krylov_rtol,
-                                  restart=40, maxiter=2)
+                                  restart=solver.krylov_iters, maxiter=1)
             if np.all(np.isfinite(dk)):
                 dfree = dk
         d = np.zeros_like(x)
