@@ -1,0 +1,76 @@
+"""The benchmark closure (3 then 80 mmHg) with the barrier contact and projected Newton,
+against today's default (smooth one-sided penalty, FIRE), side by side in one process and
+to the same relative residual, for each material model.
+
+Prints, per model and path: whether both loads converged, steps (3/80 mmHg), solve time
+after compilation, compile time, the speed-up (FIRE's solve time over Newton's: above 1
+means Newton is faster), and the headline metrics of each path, whose differences are
+what the change of contact law moves.
+
+    python benchmarks/closure_speed.py [--h 1.5] [--rtol 1e-6] [--models stvk gent]
+        [--out benchmarks/results/closure_speed.txt]
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from jaxvalve import Scene, simulate  # noqa: E402
+from jaxvalve.contact.ipc_pairs import build_pairs  # noqa: E402
+from jaxvalve.scene import MODELS  # noqa: E402
+from jaxvalve.simulation import build_scene_valve  # noqa: E402
+from jaxvalve.xla_setup import platform_summary  # noqa: E402
+
+PATHS = (("fire + smooth", dict(contact="smooth", solver="fire")),
+         ("newton + barrier", dict(contact="barrier", solver="newton")))
+METRICS = ("h_E", "h_CC", "h_avr", "NCCA_pct", "h", "h_c")
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--h", type=float, default=1.5, help="mesh size, mm")
+    ap.add_argument("--rtol", type=float, default=1e-6, help="relative residual of both")
+    ap.add_argument("--models", nargs="*", default=list(MODELS))
+    ap.add_argument("--out", default=None)
+    args = ap.parse_args(argv)
+    lines = []
+
+    def say(s=""):
+        print(s, flush=True)
+        lines.append(s)
+
+    say(f"benchmark closure, h = {args.h} mm, rtol = {args.rtol:g}; {platform_summary()}")
+    say("| model | path | converged | steps 3/80 | solve s | compile s | min gap mm | "
+        + " | ".join(METRICS) + " |")
+    say("|---" * (7 + len(METRICS)) + "|")
+    valve = None
+    summary = []
+    for model in args.models:
+        solve_s = {}
+        for name, kw in PATHS:
+            sc = Scene(model=model, h=args.h, rtol=args.rtol, **kw)
+            valve = build_scene_valve(sc) if valve is None else valve
+            res = simulate(sc, valve=valve, throw=False)
+            s3, s80 = res.solves
+            t = s3.solve_s + s80.solve_s
+            solve_s[name] = t if res.converged else float("nan")
+            gap = build_pairs(valve.barrier_topology, res.x, 1.0).min_distance
+            m = res.summary()
+            say(f"| {model} | {name} | {'yes' if res.converged else s3.result + '/' + s80.result} "
+                f"| {s3.steps}/{s80.steps} | {t:.2f} | {s3.compile_s + s80.compile_s:.1f} "
+                f"| {gap:.3f} | " + " | ".join(f"{m[k]:.3f}" for k in METRICS) + " |")
+        ratio = solve_s[PATHS[0][0]] / solve_s[PATHS[1][0]]
+        summary.append(f"{model}: speed-up {ratio:.2f}x (FIRE {solve_s[PATHS[0][0]]:.2f} s, "
+                       f"Newton {solve_s[PATHS[1][0]]:.2f} s after compilation)")
+    say()
+    for s in summary:
+        say(s)
+    if args.out:
+        Path(args.out).write_text("\n".join(lines) + "\n")
+
+
+if __name__ == "__main__":
+    main()
