@@ -62,9 +62,14 @@ def main(argv=None):
             say(f"| {model} | {name} | {'yes' if res.converged else s3.result + '/' + s80.result} "
                 f"| {s3.steps}/{s80.steps} | {t:.2f} | {s3.compile_s + s80.compile_s:.1f} "
                 f"| {gap:.3f} | " + " | ".join(f"{m[k]:.3f}" for k in METRICS) + " |")
-        ratio = solve_s[PATHS[0][0]] / solve_s[PATHS[1][0]]
-        summary.append(f"{model}: speed-up {ratio:.2f}x (FIRE {solve_s[PATHS[0][0]]:.2f} s, "
-                       f"Newton {solve_s[PATHS[1][0]]:.2f} s after compilation)")
+        fire, newton = solve_s[PATHS[0][0]], solve_s[PATHS[1][0]]
+        if fire == fire and newton == newton:       # both converged
+            summary.append(f"{model}: speed-up {fire / newton:.2f}x (FIRE {fire:.2f} s, "
+                           f"Newton {newton:.2f} s after compilation)")
+        else:
+            summary.append(f"{model}: no speed-up figure: "
+                           + " and ".join(n for n, t in solve_s.items() if t != t)
+                           + " did not converge")
     say()
     for s in summary:
         say(s)

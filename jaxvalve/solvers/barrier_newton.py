@@ -365,7 +365,6 @@ def solve_barrier(problem, params, x0, solver: BarrierNewton, topo: BarrierTopol
     result = RESULTS.max_steps_reached
     n = 0
     free = model.free
-    skip_krylov = False
     for n in range(solver.max_steps + 1):
         log.residual.append(res)
         log.pairs.append(len(pairs.pt) + len(pairs.ee))
@@ -390,9 +389,7 @@ def solve_barrier(problem, params, x0, solver: BarrierNewton, topo: BarrierTopol
             tau *= 0.1
             continue
         dfree = lu.solve(rhs)
-        krylov = res < solver.krylov_below and not skip_krylov
-        hist = log.residual
-        stalled = len(hist) > 10 and res > 0.9 * hist[-11]
+        krylov = res < solver.krylov_below
         if krylov:
             # Newton-Krylov: GMRES on the exact Jacobian, preconditioned by the factor
             def mv(v, x=x, pairs=pairs):
@@ -431,23 +428,13 @@ def solve_barrier(problem, params, x0, solver: BarrierNewton, topo: BarrierTopol
                 W = alpha / 6.0 * (g0 + 4.0 * float(np.sum(fph * d)) + float(np.sum(fpn * d)))
                 phi = En - E0 - W
                 res_n = float(np.linalg.norm(Fn)) / scale
-                # a Newton-Krylov step is taken where it lowers the merit or the
-                # residual; once the residual has stalled (less than 10 % down in 10
-                # steps) only where it lowers the residual: the merit is no potential
-                # (the follower load's work depends on the path), and merit-lowering
-                # steps went round in a cycle at a constant residual (Gent, 80 mmHg)
-                merit_ok = phi <= -solver.armijo * alpha * slope
-                res_ok = res_n < (1.0 - solver.armijo * alpha) * res
-                if (merit_ok and not (krylov and stalled)) or (krylov and res_ok):
+                if (phi <= -solver.armijo * alpha * slope
+                        or (krylov and res_n < (1.0 - solver.armijo * alpha) * res)):
                     accepted = True
                     break
             alpha *= 0.5
         log.alpha.append(alpha if accepted else 0.0)
         log.tau.append(tau)
-        if not accepted and krylov:            # retry with the projected direction
-            skip_krylov = True
-            continue
-        skip_krylov = False
         if not accepted:
             if tau > 1e-8:
                 tau *= 0.1
@@ -456,10 +443,9 @@ def solve_barrier(problem, params, x0, solver: BarrierNewton, topo: BarrierTopol
             break
         x, pairs, F, fp = xn, trial, Fn, fpn
         # pseudo-time: grown on every full step (at least 2x, faster where the residual
-        # fell faster: switched evolution relaxation), cut where a projected step was
-        # shortened (a short Newton-Krylov step says nothing about the damping)
+        # fell faster: switched evolution relaxation), cut where a step was shortened
         if alpha < a0 * t * 0.99 or t < 1.0:
-            tau = tau if krylov else max(tau * 0.5, 1e-8)
+            tau = max(tau * 0.5, 1e-8)
         else:
             tau = min(tau * max(2.0, min(res / res_n, 10.0)), 1e12)
         res = res_n
