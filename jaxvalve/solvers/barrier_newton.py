@@ -356,7 +356,7 @@ def solve_barrier(problem, params, x0, solver: BarrierNewton, topo: BarrierTopol
     if pairs.min_distance <= 0:
         raise ParameterError("the start state has leaflets touching or crossing (a pair "
                              "at distance 0); the barrier closure needs a separated start")
-    E, F, fp = model.evaluate(x, pairs)
+    _, F, fp = model.evaluate(x, pairs)
     scale = float(np.linalg.norm(fp[model.free]))
     scale = scale if scale > 0 else 1.0
     res = float(np.linalg.norm(F)) / scale
