@@ -29,6 +29,21 @@ PATHS = (("fire + smooth", dict(contact="smooth", solver="fire")),
 METRICS = ("h_E", "h_CC", "h_avr", "NCCA_pct", "h", "h_c")
 
 
+class Tee:
+    """Prints each line as it comes and keeps it, to write the results file at the end."""
+
+    def __init__(self):
+        self.lines = []
+
+    def __call__(self, s=""):
+        print(s, flush=True)
+        self.lines.append(s)
+
+    def write(self, path):
+        if path:
+            Path(path).write_text("\n".join(self.lines) + "\n")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--h", type=float, default=1.5, help="mesh size, mm")
@@ -36,12 +51,7 @@ def main(argv=None):
     ap.add_argument("--models", nargs="*", default=list(MODELS))
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
-    lines = []
-
-    def say(s=""):
-        print(s, flush=True)
-        lines.append(s)
-
+    say = Tee()
     say(f"benchmark closure, h = {args.h} mm, rtol = {args.rtol:g}; {platform_summary()}")
     say("| model | path | converged | steps 3/80 | solve s | compile s | min gap mm | "
         + " | ".join(METRICS) + " |")
@@ -73,8 +83,7 @@ def main(argv=None):
     say()
     for s in summary:
         say(s)
-    if args.out:
-        Path(args.out).write_text("\n".join(lines) + "\n")
+    say.write(args.out)
 
 
 if __name__ == "__main__":

@@ -19,6 +19,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from closure_speed import Tee  # noqa: E402  (this folder is on the path of a script)
 from jaxvalve import Scene, simulate  # noqa: E402
 from jaxvalve.contact.ipc_pairs import build_pairs  # noqa: E402
 from jaxvalve.cli.sweep import TABLE4_E1, TABLE4_E2, TABLE4_E3, TABLE4_PAPER  # noqa: E402
@@ -48,12 +49,7 @@ def main(argv=None):
     ap.add_argument("--h", type=float, default=1.5, help="mesh size, mm")
     ap.add_argument("--out", default=None, help="also write the table here")
     args = ap.parse_args(argv)
-    lines = []
-
-    def say(s=""):
-        print(s, flush=True)
-        lines.append(s)
-
+    say = Tee()
     say(f"Table 4 with the barrier contact and projected Newton, h = {args.h} mm")
     say("| E1 MPa | E2 MPa | result | steps 3/80 | residual | min gap mm | h mm (paper) "
         "| h_c mm (paper) | crossings exact/ipctk | wall s |")
@@ -79,8 +75,7 @@ def main(argv=None):
                 f"| {gap:.3f} | {res.metrics.h:.2f} ({ph:g}) | {res.metrics.h_c:.2f} ({phc:g}) "
                 f"| {cross}/{'-' if ipc is None else int(ipc)} | {wall:.1f} |")
     say(f"converged: {n_ok} of {len(TABLE4_E1) * len(TABLE4_E2)}")
-    if args.out:
-        Path(args.out).write_text("\n".join(lines) + "\n")
+    say.write(args.out)
 
 
 if __name__ == "__main__":

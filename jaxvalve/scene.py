@@ -39,7 +39,7 @@ PRECISIONS = ("float64", "float32")
 VALVE_DT_MAX = 1.5
 
 #: Newton iterations of a barrier closure at most (``max_steps`` caps it lower): the
-#: benchmark valve takes 50-130 (`benchmarks/closure_speed.py`).
+#: benchmark valve takes 50-100 a load (`benchmarks/closure_speed.py`).
 BARRIER_NEWTON_STEPS = 500
 
 

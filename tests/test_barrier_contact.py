@@ -49,7 +49,8 @@ def test_point_triangle_distance_gradient_hessian_match_ipctk():
                                    rtol=1e-9, atol=1e-11)
         np.testing.assert_allclose(H[k], ipctk.point_triangle_distance_hessian(*v),
                                    rtol=1e-8, atol=1e-10)
-        np.testing.assert_allclose(D.point_triangle_distance2_np(*v), ref, rtol=1e-11)
+        np.testing.assert_allclose(D.point_triangle_distance2_np(*(a[None] for a in v))[0], ref,
+                                   rtol=1e-11)
 
 
 def test_edge_edge_distance_gradient_hessian_match_ipctk():
@@ -170,7 +171,7 @@ def test_broad_phase_equals_brute_force():
     for p in range(len(x)):
         for t in range(len(tri)):
             if body[p] != body[tri[t, 0]]:
-                if D.point_triangle_distance2_np(x[p], *x[tri[t]]) < cut ** 2:
+                if D.point_triangle_distance2_np(x[p][None], *(a[None] for a in x[tri[t]]))[0] < cut ** 2:
                     brute_pt.add((p,) + tuple(tri[t]))
     assert set(map(tuple, pairs.pt.tolist())) == brute_pt
     E = topo.edges

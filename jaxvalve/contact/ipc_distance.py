@@ -23,6 +23,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .geometry import point_triangle_distance_np
+
 __all__ = ["PT_FACE", "PT_EDGE", "PT_VERTEX", "point_triangle_type",
            "point_triangle_distance2", "point_triangle_distance2_np",
            "edge_edge_type", "edge_edge_distance2",
@@ -100,25 +102,30 @@ def edge_edge_cross2(ea0, ea1, eb0, eb1):
     return _dot(c, c)
 
 
+def _segment_params(xp, ea0, ea1, eb0, eb1, rel_tol=1e-10):
+    """Clamped closest-point parameters (s, t) in [0, 1] of two segments (Ericson 2005,
+    sec. 5.1.9), for the array module xp (jax.numpy or numpy).  Nearly parallel edges
+    (|u x v|^2 <= rel_tol |u|^2 |v|^2) take s = 0."""
+    dot = lambda a, b: xp.sum(a * b, axis=-1)
+    u, v, r = ea1 - ea0, eb1 - eb0, ea0 - eb0
+    a, e, f = dot(u, u), dot(v, v), dot(v, r)
+    c, b = dot(u, r), dot(u, v)
+    den = a * e - b * b
+    a_s = xp.where(a > 0, a, 1.0)
+    e_s = xp.where(e > 0, e, 1.0)
+    par = den <= rel_tol * a * e
+    s = xp.clip(xp.where(par, 0.0, (b * f - c * e) / xp.where(par, 1.0, den)), 0.0, 1.0)
+    t = (b * s + f) / e_s
+    s = xp.where(t < 0, xp.clip(-c / a_s, 0.0, 1.0),
+                 xp.where(t > 1, xp.clip((b - c) / a_s, 0.0, 1.0), s))
+    return s, xp.clip(t, 0.0, 1.0)
+
+
 def edge_edge_type(ea0, ea1, eb0, eb1, rel_tol=1e-10):
     """Where the closest points of two segments lie: (ka, kb) int32 arrays, each 0 or 1
-    (that endpoint) or 2 (the interior), from the clamped closest points (Ericson 2005,
-    sec. 5.1.9).  Nearly parallel edges (|u x v|^2 <= rel_tol |u|^2 |v|^2) are treated as
-    parallel: their closest points are taken at an endpoint.  No gradient."""
+    (that endpoint) or 2 (the interior), from `_segment_params`.  No gradient."""
     ea0, ea1, eb0, eb1 = (jax.lax.stop_gradient(v) for v in (ea0, ea1, eb0, eb1))
-    u, v, r = ea1 - ea0, eb1 - eb0, ea0 - eb0
-    a, e, f = _dot(u, u), _dot(v, v), _dot(v, r)
-    c, b = _dot(u, r), _dot(u, v)
-    den = a * e - b * b
-    a_s = jnp.where(a > 0, a, 1.0)
-    e_s = jnp.where(e > 0, e, 1.0)
-    par = den <= rel_tol * a * e
-    s = jnp.where(par, 0.0, (b * f - c * e) / jnp.where(par, 1.0, den))
-    s = jnp.clip(s, 0.0, 1.0)
-    t = (b * s + f) / e_s
-    s = jnp.where(t < 0, jnp.clip(-c / a_s, 0.0, 1.0),
-                  jnp.where(t > 1, jnp.clip((b - c) / a_s, 0.0, 1.0), s))
-    t = jnp.clip(t, 0.0, 1.0)
+    s, t = _segment_params(jnp, ea0, ea1, eb0, eb1, rel_tol)
     code = lambda q: jnp.where(q <= 0, 0, jnp.where(q >= 1, 1, 2)).astype(jnp.int32)
     return code(s), code(t)
 
@@ -159,51 +166,15 @@ def mollifier(x, eps_x):
 
 # ------------------------------------------------------------------- NumPy (host side)
 def point_triangle_distance2_np(p, t0, t1, t2):
-    """Squared distance (mm^2) from points to triangles (NumPy, (..., 3) arrays), by the
-    closest point; for the host-side broad phase and the collision check."""
-    p, t0, t1, t2 = (np.asarray(v, float) for v in (p, t0, t1, t2))
-    ab, ac = t1 - t0, t2 - t0
-    ap, bp, cp = p - t0, p - t1, p - t2
-    dot = lambda a, b: np.einsum("...i,...i->...", a, b)
-    d1, d2, d3, d4, d5, d6 = (dot(ab, ap), dot(ac, ap), dot(ab, bp), dot(ac, bp),
-                              dot(ab, cp), dot(ac, cp))
-    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
-    den = va + vb + vc
-    den = np.where(den != 0, den, 1.0)
-    v, w = vb / den, vc / den
-    q = t0 + v[..., None] * ab + w[..., None] * ac                      # face
-    def edge(a, e, num, dd):
-        t = np.clip(num / np.where(dd != 0, dd, 1.0), 0.0, 1.0)
-        return a + t[..., None] * e
-    m_bc = (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0)
-    q = np.where(m_bc[..., None], edge(t1, t2 - t1, d4 - d3, (d4 - d3) + (d5 - d6)), q)
-    m_ac = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
-    q = np.where(m_ac[..., None], edge(t0, ac, d2, d2 - d6), q)
-    q = np.where(((d6 >= 0) & (d5 <= d6))[..., None], t2, q)
-    m_ab = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
-    q = np.where(m_ab[..., None], edge(t0, ab, d1, d1 - d3), q)
-    q = np.where(((d3 >= 0) & (d4 <= d3))[..., None], t1, q)
-    q = np.where(((d1 <= 0) & (d2 <= 0))[..., None], t0, q)
-    r = p - q
-    return dot(r, r)
+    """Squared distance (mm^2) from points to triangles (NumPy, (K, 3) arrays): the
+    square of the project's one point-triangle distance (`geometry.point_triangle_distance_np`)."""
+    return point_triangle_distance_np(p, t0, t1, t2) ** 2
 
 
 def segment_distance2_np(ea0, ea1, eb0, eb1):
     """Squared distance (mm^2) between segments (NumPy, (..., 3) arrays), by the clamped
-    closest points (Ericson 2005, sec. 5.1.9)."""
+    closest points (`_segment_params`)."""
     ea0, ea1, eb0, eb1 = (np.asarray(v, float) for v in (ea0, ea1, eb0, eb1))
-    dot = lambda a, b: np.einsum("...i,...i->...", a, b)
-    u, v, r = ea1 - ea0, eb1 - eb0, ea0 - eb0
-    a, e, f = dot(u, u), dot(v, v), dot(v, r)
-    c, b = dot(u, r), dot(u, v)
-    den = a * e - b * b
-    a_s = np.where(a > 0, a, 1.0)
-    e_s = np.where(e > 0, e, 1.0)
-    s = np.where(den > 1e-14 * a * e, np.clip((b * f - c * e) / np.where(den > 0, den, 1.0),
-                                              0.0, 1.0), 0.0)
-    t = (b * s + f) / e_s
-    s = np.where(t < 0, np.clip(-c / a_s, 0.0, 1.0), np.where(t > 1, np.clip((b - c) / a_s,
-                                                                               0.0, 1.0), s))
-    t = np.clip(t, 0.0, 1.0)
-    d = r + s[..., None] * u - t[..., None] * v
-    return dot(d, d)
+    s, t = _segment_params(np, ea0, ea1, eb0, eb1, 1e-14)
+    d = ea0 - eb0 + s[..., None] * (ea1 - ea0) - t[..., None] * (eb1 - eb0)
+    return np.einsum("...i,...i->...", d, d)

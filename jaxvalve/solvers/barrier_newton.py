@@ -78,6 +78,9 @@ class BarrierNewton:
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise ParameterError(f"BarrierNewton.{name} must be finite and > 0; got {v}")
+        if not (isinstance(self.max_steps, int) and self.max_steps > 0):
+            raise ParameterError(f"BarrierNewton.max_steps must be a positive integer; got "
+                                 f"{self.max_steps!r}")
         if not 0 < self.ccd_s < 1:
             raise ParameterError(f"BarrierNewton.ccd_s must lie in (0, 1); got {self.ccd_s}")
 
@@ -305,6 +308,10 @@ class _Model:
             out = out + np.asarray(_ee_jvp(self.law, xj, vj, rows, w, eps))
         return out * self.free[:, None]
 
+    def pressure(self, x):
+        """Follower pressure force (N, 3) at x."""
+        return np.asarray(_pressure(jnp.asarray(x), self.problem, self.params))
+
     def admissible(self, x):
         return bool(_admissible(jnp.asarray(x), self.problem, self.params, self.ref))
 
@@ -312,6 +319,11 @@ class _Model:
 #: cosine of the fold limit: a step may not turn two triangles that share an edge more
 #: than `jaxvalve.checks.FOLD_DEG` (150 degrees) apart, the state check's bound
 _FOLD_COS = float(np.cos(np.radians(FOLD_DEG)))
+
+
+@jax.jit
+def _pressure(x, problem, params):
+    return assembly.pressure_force(x, problem.triangles, params.pressure)
 
 
 @jax.jit
@@ -356,7 +368,8 @@ def solve_barrier(problem, params, x0, solver: BarrierNewton, topo: BarrierTopol
     if pairs.min_distance <= 0:
         raise ParameterError("the start state has leaflets touching or crossing (a pair "
                              "at distance 0); the barrier closure needs a separated start")
-    _, F, fp = model.evaluate(x, pairs)
+    E, F, fp = model.evaluate(x, pairs)
+    evals = 1
     scale = float(np.linalg.norm(fp[model.free]))
     scale = scale if scale > 0 else 1.0
     res = float(np.linalg.norm(F)) / scale
@@ -415,7 +428,7 @@ def solve_barrier(problem, params, x0, solver: BarrierNewton, topo: BarrierTopol
         t = ccd.max_step(x, a0 * d, near, solver.ccd_s)
         log.ccd.append(t)
         alpha = a0 * t
-        E0 = model.evaluate(x, near)[0]
+        # E at x: the pairs beyond d_hat that `near` adds carry no energy
         g0 = float(np.sum(fp * d))
         accepted = False
         for _ in range(solver.max_halvings):
@@ -424,9 +437,10 @@ def solve_barrier(problem, params, x0, solver: BarrierNewton, topo: BarrierTopol
                 d_pt, d_ee = pair_distances2(xn, near.pt, near.ee)
                 trial = near.within(d_pt, d_ee, dhat)
                 En, Fn, fpn = model.evaluate(xn, trial)
-                fph = model.evaluate(x + 0.5 * alpha * d, near)[2]
+                evals += 1
+                fph = model.pressure(x + 0.5 * alpha * d)
                 W = alpha / 6.0 * (g0 + 4.0 * float(np.sum(fph * d)) + float(np.sum(fpn * d)))
-                phi = En - E0 - W
+                phi = En - E - W
                 res_n = float(np.linalg.norm(Fn)) / scale
                 if (phi <= -solver.armijo * alpha * slope
                         or (krylov and res_n < (1.0 - solver.armijo * alpha) * res)):
@@ -441,7 +455,7 @@ def solve_barrier(problem, params, x0, solver: BarrierNewton, topo: BarrierTopol
                 continue
             result = RESULTS.stagnation
             break
-        x, pairs, F, fp = xn, trial, Fn, fpn
+        x, pairs, E, F, fp = xn, trial, En, Fn, fpn
         # pseudo-time: grown on every full step (at least 2x, faster where the residual
         # fell faster: switched evolution relaxation), cut where a step was shortened
         if alpha < a0 * t * 0.99 or t < 1.0:
@@ -449,7 +463,7 @@ def solve_barrier(problem, params, x0, solver: BarrierNewton, topo: BarrierTopol
         else:
             tau = min(tau * max(2.0, min(res / res_n, 10.0)), 1e12)
         res = res_n
-    stats = Stats(steps=jnp.asarray(n), force_evals=jnp.asarray(0), hvps=jnp.asarray(0),
+    stats = Stats(steps=jnp.asarray(n), force_evals=jnp.asarray(evals), hvps=jnp.asarray(0),
                   residual=jnp.asarray(res))
     return Solution(x=jnp.asarray(x), result=jnp.asarray(int(result)), stats=stats,
                     nbrs=pairs), log
