@@ -24,7 +24,7 @@ from .errors import ConvergenceError, NeighbourListOverflow, ParameterError
 from .mesh import edge_lengths_np
 from .problem import Params, Problem, validate_params
 from .solvers import RESULTS, EquilibriumSystem, FixedPoint, NewtonKrylov, Solution, Stats, iterate
-from .solvers.base import relative_residual
+from .solvers.base import escape_distance, relative_residual
 from .solvers.newton import _apply_blocks, _precond
 from . import contact as _contact
 
@@ -139,7 +139,8 @@ def _make_args(problem, params, x0, nbrs, solver, skin):
     has_contact = params.contact is not None
     a = dict(params=params, ref=ref, nbrs=nbrs, delta=jnp.asarray(0.0, x0.dtype),
              f0=jnp.asarray(1.0, x0.dtype), skin=jnp.asarray(skin, x0.dtype),
-             max_move=jnp.asarray(0.5 * skin if has_contact else jnp.inf, x0.dtype))
+             max_move=jnp.asarray(0.5 * skin if has_contact else jnp.inf, x0.dtype),
+             x_start=x0, escape=escape_distance(x0))
     system = make_system(problem, params)
     if params.contact is not None and hasattr(params.contact, "force"):
         # the paper's law needs the fixed-point step delta (tentative positions)

@@ -36,6 +36,19 @@ def _axes(ax, **kw):
     return ax.figure, ax
 
 
+def _status(result, load=1):
+    """Title suffix naming a load's outcome unless it converged (load 0: the effective-
+    height load, 1: the closing load): a figure never shows an unconverged state as if
+    it were one."""
+    r = result.solves[load]
+    if r.converged:
+        return ""
+    if r.result == "limit_point":
+        return (f"\nLIMIT POINT: no equilibrium above {r.limit_pressure:.3g} mmHg; "
+                f"shown at {r.limit_pressure:.3g} mmHg")
+    return f"\nNOT CONVERGED: {r.describe()}"
+
+
 def plot_valve(result, ax=None, state="closed"):
     """The three leaflets in 3D (mm) in ``state`` ('closed', 'effective', 'placed' or
     'template'), with the suturing paths in black."""
@@ -58,7 +71,8 @@ def plot_valve(result, ax=None, state="closed"):
     ax.set_zlabel("z (mm)")
     load = {"closed": f", P = {result.scene.pressure:g} mmHg",
             "effective": f", P = {result.scene.he_pressure:g} mmHg"}.get(state, "")
-    ax.set_title(f"valve ({state}{load})")
+    status = {"closed": _status(result, 1), "effective": _status(result, 0)}.get(state, "")
+    ax.set_title(f"valve ({state}{load}){status}")
     return fig
 
 
@@ -83,7 +97,7 @@ def plot_profiles(result, ax=None):
     ax.set_xlabel("template x (mm)")
     ax.set_ylabel("template y (mm)")
     ax.set_title(f"coaptation profiles (gap < {result.metrics.g_c:g} mm, "
-                 f"P = {result.scene.pressure:g} mmHg)")
+                 f"P = {result.scene.pressure:g} mmHg){_status(result)}")
     ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=3, fontsize="small")
     return fig
 
@@ -100,7 +114,8 @@ def plot_pair_heights(result, ax=None):
                label=f"C-C: w = {m.w_cc:g} mm (h_CC = {m.h_cc:.2f} mm)")
     ax.set_xlabel("w: distance from the axis in the pair's mid-plane (mm)")
     ax.set_ylabel("pair coaptation height H_ij(w) (mm)")
-    ax.set_title(f"pair heights (P = {result.scene.pressure:g} mmHg, h = {m.h:.2f} mm)")
+    ax.set_title(f"pair heights (P = {result.scene.pressure:g} mmHg, h = {m.h:.2f} mm)"
+                 f"{_status(result)}")
     ax.set_xlim(left=0)
     ax.set_ylim(bottom=0)
     ax.legend(loc="best", fontsize="small")

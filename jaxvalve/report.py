@@ -30,14 +30,16 @@ def metrics_json(result) -> dict:
     metrics (closing load) and metrics_he (effective-height load; its h_e is h_E), both
     `CoaptationResult.as_dict()` with per-leaflet lists, pair curves w / H and profiles;
     model, scene (all parameters), solves (per load: pressure, result, converged, steps,
-    residual, wall_s, compile_s, solve_s), timings (s) and mesh sizes.
+    residual, wall_s, compile_s, solve_s, limit_pressure, status), timings (s) and mesh
+    sizes; limit_pressure (mmHg): where the valve passed a limit point, the highest
+    pressure with an equilibrium, whose state the metrics describe (else null).
     """
     from . import __version__
 
     scene, valve = result.scene, result.valve
     solves = []
     for name, s in zip(("effective_height", "closing"), result.solves):
-        solves.append({"load": name, **s.as_dict()})
+        solves.append({"load": name, **s.as_dict(), "status": s.describe()})
     timings = dict(result.timings)
     timings["compile"] = sum(s.compile_s for s in result.solves)
     timings["solve"] = sum(s.solve_s for s in result.solves)
@@ -47,6 +49,8 @@ def metrics_json(result) -> dict:
         "jaxvalve_version": __version__,
         "units": UNITS,
         "converged": bool(result.converged),
+        "limit_pressure": next((s.limit_pressure for s in result.solves
+                                if s.limit_pressure is not None), None),
         "residual": max(float(s.residual) for s in result.solves),
         "summary": result.summary(),
         "model": scene.model,

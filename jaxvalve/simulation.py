@@ -17,6 +17,7 @@ import numpy as np
 
 from . import valve as V
 from .coaptation import annulus_level, coaptation_metrics
+from .continuation import ramp
 from .errors import ConvergenceError
 from .leaflet_mesh import mesh_leaflet
 from .scene import Scene
@@ -58,8 +59,13 @@ class compile_timer:
 
 @dataclasses.dataclass(frozen=True)
 class SolveReport:
-    """One equilibrium solve: pressure (mmHg), result name, converged, steps, relative
-    residual ||F_free|| / ||F_pressure||, wall time (s) and the part of it spent compiling."""
+    """One load: pressure (mmHg), result name, converged, steps, relative residual
+    ||F_free|| / ||F_pressure||, wall time (s) and the part of it spent compiling.
+    A load past the valve's limit point has result 'limit_point' and ``limit_pressure``,
+    the highest pressure (mmHg) with an equilibrium, whose state and residual are
+    reported instead (`jaxvalve.continuation`).  state_pressure (mmHg): the pressure of
+    the state reported, where it is not ``pressure`` (a limit point, or a continuation
+    that failed on the way)."""
 
     pressure: float
     result: str
@@ -68,11 +74,24 @@ class SolveReport:
     residual: float
     wall_s: float
     compile_s: float
+    limit_pressure: float | None = None
+    state_pressure: float | None = None
 
     @property
     def solve_s(self):
         """Wall time without compilation (s)."""
         return max(self.wall_s - self.compile_s, 0.0)
+
+    def describe(self) -> str:
+        """One line: the outcome at this load."""
+        if self.result == "limit_point":
+            return (f"limit_point: no equilibrium above {self.limit_pressure:.3g} mmHg "
+                    f"(state shown at {self.limit_pressure:.3g} mmHg, residual "
+                    f"{self.residual:.2e}, {self.steps} steps)")
+        at = ("" if self.state_pressure in (None, self.pressure)
+              else f" (state at {self.state_pressure:.3g} mmHg)")
+        return (f"{'converged' if self.converged else self.result}{at}, residual "
+                f"{self.residual:.2e}, {self.steps} steps")
 
     def as_dict(self):
         d = dataclasses.asdict(self)
@@ -206,30 +225,67 @@ def simulate(scene: Scene | None = None, *, progress: Callable[[str], None] | No
     bending = scene.bending_law()
     reports, states = [], []
     x = np.asarray(valve.x_start, scene.dtype)
+    p_prev, limit = 0.0, None
+
+    def close(p, x0):
+        return V.close(valve, material, p, solver=solver, contact=contact,
+                       thickness=scene.thickness, fibre_angle=np.deg2rad(scene.fibre_angle),
+                       bending=bending, x0=x0, throw=False, check_state=True)
+
     for p in (scene.he_pressure, scene.pressure):
+        if limit is not None:        # the lower load passed the limit point: so does this
+            reports.append(dataclasses.replace(reports[-1], pressure=float(p), steps=0,
+                                               wall_s=0.0, compile_s=0.0))
+            states.append(states[-1])
+            say(f"closing at {p:g} mmHg: skipped, above the limit point")
+            continue
         say(f"closing at {p:g} mmHg ({scene.model}, {scene.solver} solver, {scene.contact} "
             "contact)")
         with compile_timer() as ct:
             t0 = time.perf_counter()
-            sol = V.close(valve, material, p, solver=solver, contact=contact,
-                          thickness=scene.thickness, fibre_angle=np.deg2rad(scene.fibre_angle),
-                          bending=bending, x0=x, throw=False, check_state=True)
+            sol = close(p, x)
             jax.block_until_ready(sol.x)
+            steps, name, converged = int(sol.stats.steps), RESULTS(int(sol.result)).name, None
+            p_state = float(p)
+            # from an equilibrium (or the unloaded start), a runaway is followed up by
+            # continuation in pressure; from an unconverged state it is reported as it is
+            if int(sol.result) == RESULTS.escaped and (not reports or reports[-1].converged):
+                say(f"  {sol.describe()}; continuation in pressure from {p_prev:g} mmHg")
+                rr = ramp(close, x, p, p_prev, first=sol)
+                say(f"  {rr.describe()} (" + ", ".join(f"{q:.3g}: {r}" for q, r, _, _ in
+                                                       rr.history) + ")")
+                steps, name = rr.steps, rr.status
+                if rr.status == "limit_point":
+                    limit, sol, converged, p_state = rr.pressure, rr.solution, False, rr.pressure
+                elif not rr.converged:
+                    sol, p_state = rr.failure, rr.history[-1][0]
+                else:
+                    sol = rr.solution
             wall = time.perf_counter() - t0
-        rep = SolveReport(pressure=float(p), result=RESULTS(int(sol.result)).name,
-                          converged=sol.converged, steps=int(sol.stats.steps),
-                          residual=float(sol.stats.residual), wall_s=wall,
-                          compile_s=min(ct.seconds, wall))
-        say(f"  {sol.describe()}; {rep.solve_s:.2f} s (+{rep.compile_s:.1f} s compile)")
+        if limit is not None and sol is None:  # the limit is the previous load's state
+            if not reports:
+                raise ConvergenceError(f"valve closure at {p:g} mmHg: no equilibrium at "
+                                       f"any pressure above {p_prev:g} mmHg was found",
+                                       rr.failure)
+            residual, x_new = reports[-1].residual, x
+        else:
+            residual, x_new = float(sol.stats.residual), np.asarray(sol.x)
+        rep = SolveReport(pressure=float(p), result=name,
+                          converged=sol.converged if converged is None else converged,
+                          steps=steps, residual=residual, wall_s=wall,
+                          compile_s=min(ct.seconds, wall), limit_pressure=limit,
+                          state_pressure=p_state)
+        say(f"  {rep.describe()}; {rep.solve_s:.2f} s (+{rep.compile_s:.1f} s compile)")
         if throw and not rep.converged:
             raise ConvergenceError(f"valve closure at {p:g} mmHg did not converge: "
-                                   f"{sol.describe()}", sol)
-        x = np.asarray(sol.x)
+                                   f"{rep.describe()}", sol)
+        x = x_new
         if not np.all(np.isfinite(x)):
             raise ConvergenceError(f"valve closure at {p:g} mmHg produced non-finite "
                                    "positions", sol)
         reports.append(rep)
         states.append(x.astype(np.float64))
+        p_prev = float(p)
     say("measuring coaptation")
     t0 = time.perf_counter()
     m_he = measure(valve, states[0], scene.g_c)

@@ -77,7 +77,8 @@ def test_unstable_step_is_reported_not_returned(disk):
         equilibrium.solve(prob, params, x0, FixedPoint(rtol=1e-6, delta=50.0, max_steps=500))
     sol = equilibrium.solve(prob, params, x0, FixedPoint(rtol=1e-6, delta=50.0, max_steps=500),
                             throw=False)
-    assert int(sol.result) in (RESULTS.nonfinite, RESULTS.max_steps_reached)
+    # it blows up: caught as it leaves the disc's size (escaped), or later as non-finite
+    assert int(sol.result) in (RESULTS.escaped, RESULTS.nonfinite, RESULTS.max_steps_reached)
     assert not sol.converged
 
 

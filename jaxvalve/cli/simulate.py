@@ -3,7 +3,8 @@ h_avr, NCCA, h, h_c).
 
 The scene is the benchmark valve unless a SCENE.toml is given (keys = the field names of
 jaxvalve.scene.Scene); flags override the file.  Exit codes: 0 converged, 2 bad input,
-3 a solve did not converge (the outputs are still written).
+3 a solve did not converge, 4 a limit point: no equilibrium at the load (the outputs are
+still written, of the last equilibrium).
 """
 from __future__ import annotations
 
@@ -136,9 +137,7 @@ def _table(result):
             ("solve time", f"{sum(r.solve_s for r in solves):.2f} s"),
             ("compile time", f"{sum(r.compile_s for r in solves):.1f} s")]
     for r in solves:
-        rows.append((f"solve at {r.pressure:g} mmHg",
-                     f"{'converged' if r.converged else r.result}, residual "
-                     f"{r.residual:.2e}, {r.steps} steps"))
+        rows.append((f"solve at {r.pressure:g} mmHg", r.describe()))
     w = max(len(k) for k, _ in rows)
     return "\n".join(f"  {k:<{w}}  {v}" for k, v in rows)
 
@@ -163,10 +162,17 @@ def run(args) -> int:
         print(_table(result))
     if written:
         say(f"wrote {len(written)} files to {args.out}")
+    lim = [r for r in result.solves if r.result == "limit_point"]
+    if lim:
+        print(f"jaxvalve simulate: warning: LIMIT POINT: the valve has no equilibrium above "
+              f"{lim[0].limit_pressure:.3g} mmHg (the leaflets balloon out without end: a "
+              "membrane that does not stiffen has an inflation limit, README); the "
+              f"metrics are of the equilibrium at {lim[0].limit_pressure:.3g} mmHg, not at "
+              f"{lim[-1].pressure:g} mmHg", file=sys.stderr)
+        return 4
     if not result.converged:
         bad = [r for r in result.solves if not r.converged]
-        what = "; ".join(f"at {r.pressure:g} mmHg: {r.result}, relative residual "
-                         f"{r.residual:.3e} after {r.steps} steps (rtol {scene.rtol:g})"
+        what = "; ".join(f"at {r.pressure:g} mmHg: {r.describe()} (rtol {scene.rtol:g})"
                          for r in bad)
         print(f"jaxvalve simulate: warning: the closure did NOT converge ({what}); the "
               "metrics are of an unconverged state", file=sys.stderr)

@@ -20,7 +20,9 @@ contact (`jaxvalve.contact.ccd`), so the leaflets can never cross.  Each step:
    without an edge folded past 150 degrees (the bound of `jaxvalve.checks`: without it,
    long steps on coarse or soft leaflets jumped into creased states, a discretisation
    artefact the state check rejects).
-4. Stop when ||F_free|| / ||F_pressure|| < rtol.
+4. Stop when ||F_free|| / ||F_pressure|| < rtol, or with `RESULTS.escaped` once a node has
+   moved farther than the start state's diameter (past a limit point the merit has no
+   minimum and each step moves ``dx_max``; `jaxvalve.continuation` takes it from there).
 
 The solve runs on the host: a Python loop around jitted kernels (energies, forces, element
 and pair Hessians), each compiled once per mesh: pair lists are evaluated in chunks of
@@ -43,7 +45,7 @@ from ..contact.barrier import ee_energies, pt_energies
 from ..contact.ipc_pairs import BarrierTopology, build_pairs, pair_distances2
 from ..checks import FOLD_DEG
 from ..errors import ParameterError
-from .base import RESULTS, Solution, Stats
+from .base import RESULTS, Solution, Stats, escape_distance
 
 __all__ = ["BarrierNewton", "solve_barrier", "CHUNK"]
 
@@ -374,6 +376,7 @@ def solve_barrier(problem, params, x0, solver: BarrierNewton, topo: BarrierTopol
     scale = scale if scale > 0 else 1.0
     res = float(np.linalg.norm(F)) / scale
     log = BarrierLog()
+    x_start, escape = x.copy(), float(escape_distance(x))
     tau = solver.tau0
     result = RESULTS.max_steps_reached
     n = 0
@@ -456,6 +459,10 @@ def solve_barrier(problem, params, x0, solver: BarrierNewton, topo: BarrierTopol
             result = RESULTS.stagnation
             break
         x, pairs, E, F, fp = xn, trial, En, Fn, fpn
+        if np.max(np.sum((x - x_start) ** 2, axis=1)) > escape**2:
+            res = res_n
+            result = RESULTS.escaped
+            break
         # pseudo-time: grown on every full step (at least 2x, faster where the residual
         # fell faster: switched evolution relaxation), cut where a step was shortened
         if alpha < a0 * t * 0.99 or t < 1.0:

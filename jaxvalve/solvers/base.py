@@ -27,6 +27,7 @@ class RESULTS(enum.IntEnum):
     stagnation = 5
     leaflets_cross = 6     # set by `jaxvalve.valve.close(..., check_state=True)`
     inverted_triangles = 7  # set by `jaxvalve.valve.close(..., check_state=True)`
+    escaped = 8            # a node moved farther than the structure's size from the start
 
     @property
     def message(self):
@@ -45,6 +46,9 @@ _MESSAGES = {
     RESULTS.inverted_triangles: ("the force residual met the tolerance but a triangle is "
                                  "folded over its neighbour or collapsed "
                                  "(jaxvalve.checks.triangle_checks)"),
+    RESULTS.escaped: ("a node moved farther from its start than the structure's diameter: "
+                      "no equilibrium near the start (a load past the structure's limit "
+                      "point, or an unrestrained rigid-body drift)"),
 }
 
 
@@ -112,11 +116,27 @@ def relative_residual(system, y, args, F=None):
     return jnp.linalg.norm(F) / jnp.where(s > 0, s, 1.0)
 
 
+def escape_distance(x0):
+    """The diameter of the state x0 (N, 3) mm (twice its largest distance from the
+    centroid): the farthest any node may move in one solve (`RESULTS.escaped`).  An
+    equilibrium near x0 lies within it; a structure that passes it is running away."""
+    c = jnp.mean(x0, axis=0)
+    return 2.0 * jnp.max(jnp.linalg.norm(x0 - c, axis=-1))
+
+
+def escaped(y, x0, distance):
+    """True where a node of y (N, 3) moved farther than ``distance`` mm from x0."""
+    return jnp.max(jnp.sum((y - x0) ** 2, axis=-1)) > distance**2
+
+
 def check_state(system, y, args, F):
-    """RESULTS code for an invalid state (nonfinite / stretch limit / overflow), else -1."""
+    """RESULTS code for an invalid state (nonfinite / stretch limit / overflow / escaped),
+    else -1.  ``args`` holds the solve's start ``x_start`` and ``escape`` distance (mm)."""
     finite = jnp.all(jnp.isfinite(y)) & jnp.all(jnp.isfinite(F))
     code = jnp.where(~finite, RESULTS.nonfinite, -1)
     code = jnp.where((code < 0) & ~system.admissible(y, args), RESULTS.stretch_limit, code)
+    code = jnp.where((code < 0) & escaped(y, args["x_start"], args["escape"]),
+                     RESULTS.escaped, code)
     code = jnp.where((code < 0) & system.overflow(args), RESULTS.neighbour_overflow, code)
     return code
 

@@ -1,0 +1,125 @@
+"""Continuation in pressure, and the limit point where it ends.
+
+A membrane without strain stiffening (linear springs, neo-Hookean) has an inflation limit:
+a spherical neo-Hookean balloon of radius R and thickness H is in equilibrium only below
+P_max = 2 mu H / R (7^(-1/6) - 7^(-7/6)) ~ 1.24 mu H / R (at the stretch 7^(1/6)); above it
+there is no equilibrium and the membrane inflates without end.  A solve there ends with
+`RESULTS.escaped` (a node moved farther than the structure's diameter from its start).
+
+`ramp` closes the gap between the highest pressure with an equilibrium and a target:
+from a converged state it tries the target; where a solve runs away it bisects the
+pressure interval between the last equilibrium and the runaway, warm-starting every solve
+from the last equilibrium, until the interval is narrower than ``rtol`` times its upper
+end.  The result is one of
+
+* ``converged``: the target pressure has an equilibrium (the usual case, one solve);
+* ``limit_point``: every solve above ``pressure`` ran away and every one at or below it
+  converged, within the bracket ``(pressure, p_escape)``: no equilibrium at the target
+  connected to the start, the highest one found being the state ``x`` at ``pressure``;
+* any other `RESULTS` name: a solve failed for another reason (step cap, stagnation,
+  crossing leaflets ...), which ends the ramp and is reported as it is, never as a limit
+  point.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Callable
+
+import numpy as np
+
+from .errors import ParameterError
+from .solvers import RESULTS
+
+__all__ = ["Ramp", "RampResult", "ramp"]
+
+
+@dataclasses.dataclass(frozen=True)
+class Ramp:
+    """Settings of `ramp`: rtol, the bracket width (relative to its upper pressure) at which
+    a limit point is declared; max_solves, the most equilibrium solves in one ramp."""
+
+    rtol: float = 0.01
+    max_solves: int = 30
+
+    def __post_init__(self):
+        if not (np.isfinite(self.rtol) and 0 < self.rtol < 1):
+            raise ParameterError(f"Ramp.rtol must lie in (0, 1); got {self.rtol}")
+        if not (isinstance(self.max_solves, int) and self.max_solves > 0):
+            raise ParameterError(f"Ramp.max_solves must be a positive integer; got "
+                                 f"{self.max_solves!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class RampResult:
+    """Outcome of `ramp`.
+
+    status: 'converged', 'limit_point', or the `RESULTS` name of the failure that ended it.
+    pressure: the highest pressure with a converged equilibrium (the target when
+    converged; the start pressure when none converged).  p_escape: the lowest pressure at
+    which a solve ran away (None when none did).  x (N, 3): the state at ``pressure``.
+    solution: the solve that gave x (None when it is the start state), failure: the solve
+    that ended the ramp (None when converged).  history: (pressure, result name, steps,
+    relative residual) per solve.  steps: solver steps over all solves."""
+
+    status: str
+    pressure: float
+    p_escape: float | None
+    x: Any
+    solution: Any
+    failure: Any
+    history: tuple
+    steps: int
+
+    @property
+    def converged(self) -> bool:
+        return self.status == "converged"
+
+    def describe(self) -> str:
+        if self.status == "converged":
+            return f"converged at {self.pressure:g}"
+        if self.status == "limit_point":
+            return (f"limit_point: no equilibrium above {self.pressure:.4g} (solves at "
+                    f"{self.p_escape:.4g} and above ran away); the state shown is the "
+                    f"equilibrium at {self.pressure:.4g}")
+        f = self.failure
+        tail = f": {f.describe()}" if f is not None else ""
+        return f"{self.status} (highest equilibrium at {self.pressure:.4g}){tail}"
+
+
+def ramp(solve: Callable, x0, p_target: float, p_start: float = 0.0,
+         settings: Ramp | None = None, first=None) -> RampResult:
+    """Continuation in pressure from an equilibrium x0 at p_start to p_target.
+
+    solve(p, x) -> `Solution`: the equilibrium at pressure p from the start x.
+    first: the solve at p_target from x0 when the caller has already run it (it is not
+    repeated).  Pressures in any unit, p_target > p_start >= 0."""
+    settings = Ramp() if settings is None else settings
+    p_target, p_start = float(p_target), float(p_start)
+    if not (np.isfinite(p_target) and np.isfinite(p_start) and p_target > p_start >= 0):
+        raise ParameterError(f"ramp needs p_target > p_start >= 0; got p_start={p_start}, "
+                             f"p_target={p_target}")
+    p_ok, x_ok, sol_ok = p_start, x0, None
+    p_bad = None
+    history, steps = [], 0
+    p = p_target
+    for k in range(settings.max_solves):
+        sol = first if (k == 0 and first is not None) else solve(p, x_ok)
+        code = RESULTS(int(sol.result))
+        n = int(sol.stats.steps)
+        steps += n
+        history.append((p, code.name, n, float(sol.stats.residual)))
+        if sol.converged:
+            p_ok, x_ok, sol_ok = p, sol.x, sol
+            if p >= p_target:
+                return RampResult("converged", p, p_bad, x_ok, sol_ok, None, tuple(history),
+                                  steps)
+        elif code == RESULTS.escaped:
+            p_bad = p
+            if p_bad - p_ok <= settings.rtol * p_bad:
+                return RampResult("limit_point", p_ok, p_bad, x_ok, sol_ok, sol,
+                                  tuple(history), steps)
+        else:
+            return RampResult(code.name, p_ok, p_bad, x_ok, sol_ok, sol, tuple(history), steps)
+        p = p_target if p_bad is None else 0.5 * (p_ok + p_bad)
+    return RampResult(RESULTS.escaped.name if p_bad is not None else "max_steps_reached",
+                      p_ok, p_bad, x_ok, sol_ok, sol, tuple(history), steps)

@@ -1,0 +1,118 @@
+"""Continuation in pressure and the limit point (`jaxvalve.continuation`).
+
+An inflated neo-Hookean sphere (R, H, mu) has an exact pressure-stretch curve,
+P = 2 mu H / R (1/lambda - 1/lambda^7), with a maximum at lambda = 7^(1/6): above it no
+equilibrium exists.  The icosphere's flat facets inflate like a sphere of the effective
+radius 3 V0 / A0 (`tests/test_validation.py`), so its limit pressure is the analytic one
+at that radius.  `ramp` must bracket it to its tolerance, report the state at the highest
+equilibrium, and never call a failure of another kind a limit point.
+"""
+import numpy as np
+import pytest
+import jax.numpy as jnp
+
+from jaxvalve import analytic, meshgen
+from jaxvalve.continuation import Ramp, ramp
+from jaxvalve.equilibrium import solve
+from jaxvalve.errors import ParameterError
+from jaxvalve.materials import NeoHookean
+from jaxvalve.problem import Params, make_problem
+from jaxvalve.solvers import FIRE, RESULTS
+
+R, H, MU = 5.0, 0.3, 0.1
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    p, t = meshgen.icosphere(R, 2)
+    prob, ref = make_problem(p, t)
+    V0 = np.sum(np.einsum("ij,ij->i", p[t[:, 0]], np.cross(p[t[:, 1]], p[t[:, 2]]))) / 6
+    A0 = 0.5 * np.sum(np.linalg.norm(np.cross(p[t[:, 1]] - p[t[:, 0]],
+                                               p[t[:, 2]] - p[t[:, 0]]), axis=1))
+    r_eff = 3 * V0 / A0
+    p_max = float(analytic.sphere_pressure_neo_hookean(analytic.NEO_HOOKEAN_LIMIT_STRETCH,
+                                                       MU, H, r_eff))
+    return prob, ref, jnp.asarray(p), p_max, r_eff
+
+
+def _solver(prob, ref, solver):
+    def run(P, x):
+        params = Params(ref=ref, material=NeoHookean(MU), thickness=H, pressure=P)
+        return solve(prob, params, jnp.asarray(x), solver, throw=False)
+    return run
+
+
+def _stretch(x):
+    x = np.asarray(x)
+    return np.linalg.norm(x - x.mean(0), axis=1).mean() / R
+
+
+def test_a_load_past_the_limit_runs_away(sphere):
+    prob, ref, x0, p_max, r_eff = sphere
+    run = _solver(prob, ref, FIRE(rtol=1e-8, max_steps=20_000))
+    below, above = run(0.99 * p_max, x0), run(1.01 * p_max, x0)
+    assert below.converged and _stretch(below.x) < analytic.NEO_HOOKEAN_LIMIT_STRETCH
+    # 1 % above the limit the sphere inflates until a node has moved a diameter
+    assert int(above.result) == RESULTS.escaped
+    assert _stretch(above.x) > 2.9
+
+
+def test_ramp_brackets_the_analytic_limit_point(sphere):
+    prob, ref, x0, p_max, r_eff = sphere
+    out = ramp(_solver(prob, ref, FIRE(rtol=1e-8, max_steps=20_000)), x0, 2.0 * p_max,
+               settings=Ramp(rtol=0.005))
+    assert out.status == "limit_point" and not out.converged
+    # the bracket holds the analytic limit of the effective sphere to 0.2 % (the discrete
+    # limit lies 1e-4 below it: the flat-facet radius is not exact at this stretch)
+    assert out.pressure < out.p_escape
+    assert out.pressure < 1.002 * p_max and out.p_escape > 0.998 * p_max
+    assert out.p_escape - out.pressure <= 0.005 * out.p_escape
+    assert out.solution.converged
+    # the reported state is the equilibrium at the reported pressure, on the stable branch
+    lam = _stretch(out.x)
+    assert abs(lam - analytic.inflated_sphere_stretch(out.pressure, MU, H, r_eff)) < 0.05
+    assert lam < analytic.NEO_HOOKEAN_LIMIT_STRETCH * 1.02
+    results = [h[1] for h in out.history]
+    assert set(results) == {"successful", "escaped"}
+    assert "limit_point" in out.describe() and f"{out.pressure:.4g}" in out.describe()
+
+
+def test_ramp_below_the_limit_converges_in_one_solve(sphere):
+    prob, ref, x0, p_max, r_eff = sphere
+    out = ramp(_solver(prob, ref, FIRE(rtol=1e-8, max_steps=20_000)), x0, 0.9 * p_max)
+    assert out.converged and out.pressure == 0.9 * p_max and len(out.history) == 1
+    lam = analytic.inflated_sphere_stretch(0.9 * p_max, MU, H, r_eff)
+    assert abs(_stretch(out.x) - lam) < 0.02 * lam
+
+
+def test_another_failure_is_never_called_a_limit_point(sphere):
+    prob, ref, x0, p_max, r_eff = sphere
+    # five FIRE steps cannot converge anywhere: the ramp stops at the first failure
+    out = ramp(_solver(prob, ref, FIRE(rtol=1e-8, max_steps=5)), x0, 0.5 * p_max)
+    assert out.status == "max_steps_reached" and out.pressure == 0.0
+    assert out.solution is None and int(out.failure.result) == RESULTS.max_steps_reached
+    assert "max_steps_reached" in out.describe()
+
+
+def test_ramp_rejects_bad_settings(sphere):
+    prob, ref, x0, p_max, r_eff = sphere
+    with pytest.raises(ParameterError, match="rtol"):
+        Ramp(rtol=0.0)
+    with pytest.raises(ParameterError, match="max_solves"):
+        Ramp(max_solves=0)
+    with pytest.raises(ParameterError, match="p_target > p_start"):
+        ramp(lambda p, x: None, x0, 1.0, p_start=2.0)
+
+
+def test_solve_report_names_the_limit_point_and_the_state_pressure():
+    from jaxvalve.simulation import SolveReport
+    lim = SolveReport(pressure=80.0, result="limit_point", converged=False, steps=900,
+                      residual=5e-5, wall_s=1.0, compile_s=0.5, limit_pressure=11.25,
+                      state_pressure=11.25)
+    assert lim.describe().startswith("limit_point: no equilibrium above 11.2 mmHg")
+    bad = SolveReport(pressure=80.0, result="max_steps_reached", converged=False, steps=9,
+                      residual=2e-3, wall_s=1.0, compile_s=0.5, state_pressure=12.6)
+    assert "max_steps_reached (state at 12.6 mmHg)" in bad.describe()
+    ok = SolveReport(pressure=80.0, result="successful", converged=True, steps=9,
+                     residual=2e-5, wall_s=1.0, compile_s=0.5, state_pressure=80.0)
+    assert ok.describe() == "converged, residual 2.00e-05, 9 steps"
