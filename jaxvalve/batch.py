@@ -24,8 +24,8 @@ the members that need them (`jaxvalve.batching`).  Two ways to run the steps:
   each of them finishes in its own single-solve loop, so a straggler does not pay a
   batch's step to the end.  XLA orders a few sums differently for batched arrays, so members
   differ from sequential runs by rounding (1e-16), which FIRE's path can amplify to ~1e-3
-  mm at rtol 1e-4 (the size of the path dependence of the closed state; README,
-  "Accuracy").  On this 2-core CPU it is slower than the member loop (`benchmarks/batch.py`).
+  mm at rtol 1e-4 (the size of the path dependence of the closed state; docs/batch.md).
+  On a 2-core CPU it is slower than the member loop (`benchmarks/batch.py`).
 
 A batch of one member runs the unbatched program of a single solve (no vmap) either way.
 

@@ -7,15 +7,17 @@ there is no equilibrium and the membrane inflates without end.  A solve there en
 `RESULTS.escaped` (a node moved farther than the structure's diameter from its start).
 
 `ramp` closes the gap between the highest pressure with an equilibrium and a target:
-from a converged state it tries the target; where a solve runs away it bisects the
+from the start state it tries the target; where a solve runs away it bisects the
 pressure interval between the last equilibrium and the runaway, warm-starting every solve
 from the last equilibrium, until the interval is narrower than ``rtol`` times its upper
 end.  The result is one of
 
 * ``converged``: the target pressure has an equilibrium (the usual case, one solve);
-* ``limit_point``: every solve above ``pressure`` ran away and every one at or below it
-  converged, within the bracket ``(pressure, p_escape)``: no equilibrium at the target
-  connected to the start, the highest one found being the state ``x`` at ``pressure``;
+* ``limit_point``: at least one solve converged, every solve above ``pressure`` ran away
+  and every one at or below it converged, within the bracket ``(pressure, p_escape)``:
+  no equilibrium at the target connected to the start, the highest one found being the
+  state ``x`` at ``pressure`` (a start that is not itself an equilibrium is never
+  reported as a limit point: with no converged solve the ramp ends as ``escaped``);
 * any other `RESULTS` name: a solve failed for another reason (step cap, stagnation,
   crossing leaflets ...), which ends the ramp and is reported as it is, never as a limit
   point.
@@ -74,6 +76,20 @@ class RampResult:
     def converged(self) -> bool:
         return self.status == "converged"
 
+    @property
+    def limit_point(self) -> bool:
+        return self.status == "limit_point"
+
+    @property
+    def final(self):
+        """(`Solution`, pressure) of the state the ramp reports: the equilibrium at
+        ``pressure`` where it ended by converging, at a limit point or in runaways after
+        an equilibrium; otherwise the solve that failed, at its pressure."""
+        if self.solution is not None and self.status in ("converged", "limit_point",
+                                                         "escaped"):
+            return self.solution, self.pressure
+        return self.failure, self.history[-1][0]
+
     def describe(self) -> str:
         if self.status == "converged":
             return f"converged at {self.pressure:g}"
@@ -87,12 +103,12 @@ class RampResult:
 
 
 def ramp(solve: Callable, x0, p_target: float, p_start: float = 0.0,
-         settings: Ramp | None = None, first=None) -> RampResult:
+         settings: Ramp | None = None) -> RampResult:
     """Continuation in pressure from an equilibrium x0 at p_start to p_target.
 
-    solve(p, x) -> `Solution`: the equilibrium at pressure p from the start x.
-    first: the solve at p_target from x0 when the caller has already run it (it is not
-    repeated).  Pressures in any unit, p_target > p_start >= 0."""
+    solve(p, x) -> `Solution`: the equilibrium at pressure p from the start x.  The first
+    solve is at p_target; where it converges or fails for a reason other than a runaway,
+    it is the only one.  Pressures in any unit, p_target > p_start >= 0."""
     settings = Ramp() if settings is None else settings
     p_target, p_start = float(p_target), float(p_start)
     if not (np.isfinite(p_target) and np.isfinite(p_start) and p_target > p_start >= 0):
@@ -102,8 +118,8 @@ def ramp(solve: Callable, x0, p_target: float, p_start: float = 0.0,
     p_bad = None
     history, steps = [], 0
     p = p_target
-    for k in range(settings.max_solves):
-        sol = first if (k == 0 and first is not None) else solve(p, x_ok)
+    for _ in range(settings.max_solves):
+        sol = solve(p, x_ok)
         code = RESULTS(int(sol.result))
         n = int(sol.stats.steps)
         steps += n
@@ -116,10 +132,14 @@ def ramp(solve: Callable, x0, p_target: float, p_start: float = 0.0,
         elif code == RESULTS.escaped:
             p_bad = p
             if p_bad - p_ok <= settings.rtol * p_bad:
+                if sol_ok is None:           # runaway down to the start: no equilibrium
+                    break
                 return RampResult("limit_point", p_ok, p_bad, x_ok, sol_ok, sol,
                                   tuple(history), steps)
         else:
             return RampResult(code.name, p_ok, p_bad, x_ok, sol_ok, sol, tuple(history), steps)
         p = p_target if p_bad is None else 0.5 * (p_ok + p_bad)
-    return RampResult(RESULTS.escaped.name if p_bad is not None else "max_steps_reached",
-                      p_ok, p_bad, x_ok, sol_ok, sol, tuple(history), steps)
+    # every solve since the last equilibrium ran away (p_bad is set: a converged solve
+    # at the target returns above)
+    return RampResult(RESULTS.escaped.name, p_ok, p_bad, x_ok, sol_ok, sol, tuple(history),
+                      steps)

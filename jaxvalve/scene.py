@@ -3,7 +3,7 @@
 `Scene()` is the benchmark valve (DESIGN.md, Table 1 setting).  A scene is plain data; it
 can be read from TOML (`Scene.from_toml`) and every field can be overridden.
 
-Benchmark template (chosen from anatomy before any closure was run; README, "Benchmark"):
+Benchmark template (chosen from anatomy before any closure was run; docs/benchmarks.md):
 free edge 2b = 30 mm (Labrosse et al. 2006, free-edge length 30 mm), arc radius r = 12 mm
 (the annulus radius, so the belly's arc matches the annulus), alpha = 160 degrees (the
 paper), and a = 7.1 mm, which makes the sutured edge 47.71 mm: the length of the benchmark
@@ -55,13 +55,13 @@ class Scene:
     pressure, he_pressure: the closing load and the effective-height load (mmHg).
     rtol: relative force residual ||F_free|| / ||F_pressure|| the closure must reach
     (default 1e-4: the coaptation metrics then agree with a 1e-6 solve to ~0.01 mm; see
-    the README's "Run time against error").
+    docs/benchmarks.md, "Run time against error").
     bending: plate bending stiffness as a multiple of the physical D = E H^3 / (12 (1 -
     nu^2)) (`jaxvalve.bending`); 0 gives the pure membrane of DESIGN.md.
     precision: the floating type of the solve, "float64" (default) or "float32" (states,
     parameters and forces; the metrics are always measured in float64).  float32 forces
     carry rounding near 1e-4 of ||F_pressure|| at 3 mmHg, so a float32 closure may stop
-    short of rtol = 1e-4 there (README, "Accuracy against run time").
+    short of rtol = 1e-4 there (docs/benchmarks.md, "Run time against error").
     """
 
     r: float = BENCHMARK_TEMPLATE.r

@@ -243,42 +243,26 @@ def simulate(scene: Scene | None = None, *, progress: Callable[[str], None] | No
             "contact)")
         with compile_timer() as ct:
             t0 = time.perf_counter()
-            sol = close(p, x)
+            # one solve at p; where it runs away, continuation in pressure from p_prev
+            rr = ramp(close, x, p, p_prev)
+            sol, p_state = rr.final
             jax.block_until_ready(sol.x)
-            steps, name, converged = int(sol.stats.steps), RESULTS(int(sol.result)).name, None
-            p_state = float(p)
-            # from an equilibrium (or the unloaded start), a runaway is followed up by
-            # continuation in pressure; from an unconverged state it is reported as it is
-            if int(sol.result) == RESULTS.escaped and (not reports or reports[-1].converged):
-                say(f"  {sol.describe()}; continuation in pressure from {p_prev:g} mmHg")
-                rr = ramp(close, x, p, p_prev, first=sol)
-                say(f"  {rr.describe()} (" + ", ".join(f"{q:.3g}: {r}" for q, r, _, _ in
-                                                       rr.history) + ")")
-                steps, name = rr.steps, rr.status
-                if rr.status == "limit_point":
-                    limit, sol, converged, p_state = rr.pressure, rr.solution, False, rr.pressure
-                elif not rr.converged:
-                    sol, p_state = rr.failure, rr.history[-1][0]
-                else:
-                    sol = rr.solution
             wall = time.perf_counter() - t0
-        if limit is not None and sol is None:  # the limit is the previous load's state
-            if not reports:
-                raise ConvergenceError(f"valve closure at {p:g} mmHg: no equilibrium at "
-                                       f"any pressure above {p_prev:g} mmHg was found",
-                                       rr.failure)
-            residual, x_new = reports[-1].residual, x
-        else:
-            residual, x_new = float(sol.stats.residual), np.asarray(sol.x)
-        rep = SolveReport(pressure=float(p), result=name,
-                          converged=sol.converged if converged is None else converged,
-                          steps=steps, residual=residual, wall_s=wall,
+        if len(rr.history) > 1:
+            say("  continuation: " + ", ".join(f"{q:.3g} mmHg {r}" for q, r, _, _ in
+                                               rr.history))
+        limit = rr.pressure if rr.limit_point else None
+        rep = SolveReport(pressure=float(p),
+                          result=RESULTS.successful.name if rr.converged else rr.status,
+                          converged=rr.converged, steps=rr.steps,
+                          residual=float(sol.stats.residual), wall_s=wall,
                           compile_s=min(ct.seconds, wall), limit_pressure=limit,
                           state_pressure=p_state)
         say(f"  {rep.describe()}; {rep.solve_s:.2f} s (+{rep.compile_s:.1f} s compile)")
         if throw and not rep.converged:
             raise ConvergenceError(f"valve closure at {p:g} mmHg did not converge: "
                                    f"{rep.describe()}", sol)
+        x_new = np.asarray(sol.x)
         x = x_new
         if not np.all(np.isfinite(x)):
             raise ConvergenceError(f"valve closure at {p:g} mmHg produced non-finite "

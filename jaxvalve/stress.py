@@ -21,7 +21,7 @@ group of (E, P) costs one closure per load.  The run is judged on its final stat
 it returns; the 3 mmHg stage's result is recorded with it (``stage1``).
 
 The paper's Fig. 3 templates (a) r=11, a=11, b=11; (b) r=12, a=13, b=13; (c) r=13, a=13,
-b=14 mm, alpha = 160 degrees, break DESIGN.md's 2b > |AD| (README, "Benchmark").  The
+b=14 mm, alpha = 160 degrees, break DESIGN.md's 2b > |AD| (docs/benchmarks.md).  The
 suite tries each as given (a `ParameterError` naming b is the expected, clear report) and
 runs the matrix on the nearest valid variant: the same r and a, with b = |AD|/2 + 1 mm
 (`paper_templates`).  The root is the benchmark root fitted to each template's sutured
@@ -55,7 +55,7 @@ __all__ = ["RunRecord", "MATRIX_E", "MATRIX_P", "STRESS_H", "STRESS_MAX_STEPS",
 
 MATRIX_E = (0.05, 0.1, 1.0, 10.0, 20.0)      # MPa
 MATRIX_P = (3.0, 80.0, 200.0)                # mmHg
-STRESS_H = 2.0                               # mm (h = 3 mm does not converge; README)
+STRESS_H = 2.0                               # mm (h = 3 mm does not converge; docs/known-limits.md)
 STRESS_MAX_STEPS = 4000                      # FIRE steps a closure (see `_solve_stage`)
 HE_PRESSURE = 3.0
 OUTCOMES = ("converged", "reported", "silent")

@@ -14,9 +14,9 @@ the exact operator (Jacobian-vector products of the residual by autodiff).
 `adjoint_solve(problem, params, x, nbrs, g)` solves K^T mu = g on the free dofs with GMRES
 on exact vector-Jacobian products, preconditioned by a sparse LU of the assembled K^T
 (scipy `splu`), on the host.  It is the fast alternative to the block-Jacobi GMRES inside
-`equilibrium.solve`'s adjoint (measured on the benchmark valve at h = 1.5 mm: README,
-"Optimisation").  Returns mu (N, 3) and an `AdjointReport` (iterations, relative residual,
-seconds); it raises `ConvergenceError` when GMRES misses its tolerance.
+`equilibrium.solve`'s adjoint (measured on the benchmark valve at h = 1.5 mm:
+docs/gradients-and-optimisation.md, "Why not block-Jacobi").  Returns mu (N, 3) and an
+`AdjointReport` (iterations, relative residual, seconds); it raises `ConvergenceError` when GMRES misses its tolerance.
 """
 from __future__ import annotations
 
@@ -52,8 +52,9 @@ class AdjointReport:
     nnz: int
 
 
-def _local_hinges(problem):
-    """Per hinge: its 4 nodes and its two triangles in local (0..3) indices (host)."""
+def local_hinges(problem):
+    """Per hinge: its 4 nodes (K, 4) and its two triangles in local (0..3) indices
+    (K, 2, 3), on the host."""
     hin = np.asarray(problem.hinges)
     tri = np.asarray(problem.triangles)
     nodes = hin[:, :4]
@@ -64,13 +65,23 @@ def _local_hinges(problem):
     return nodes, loc
 
 
-def _pressure_blocks(x, problem, params):
+def pressure_blocks(x, problem, params):
     """(M, 9, 9) Jacobian d(F_pressure)/dx of each triangle, F = P A n / 3 at each node."""
     def f(xe):
         xe = xe.reshape(3, 3)
         an = 0.5 * jnp.cross(xe[1] - xe[0], xe[2] - xe[0])
         return jnp.tile(params.pressure / 3.0 * an, 3)
     return jax.vmap(jax.jacfwd(f))(x[problem.triangles].reshape(-1, 9))
+
+
+def hinge_hessians(x, params, ref, hinge_nodes, hinge_tris):
+    """(K, 12, 12) Hessians of the bending energy of each hinge (N mm / mm^2), from
+    `local_hinges` (hinge_nodes (K, 4), hinge_tris (K, 2, 3))."""
+    D = params.bending.scale * plate_modulus(params.material, params.thickness)
+    one = lambda xh, tl, w: bending_energy(xh, jnp.array([[0, 1, 2, 3, 0, 1]]), w[None], D,
+                                           tl)
+    return (jax.vmap(jax.hessian(one))(x[hinge_nodes], hinge_tris, ref.hinge_w)
+            .reshape(-1, 12, 12))
 
 
 def _contact_blocks(x, problem, params, ref, pairs: SoftPairs):
@@ -109,20 +120,16 @@ def _contact_blocks(x, problem, params, ref, pairs: SoftPairs):
 def _blocks(x, problem, params, nbrs, hinge_nodes, hinge_tris):
     ref = assembly.prepare(problem, params)
     out = [(assembly._element_hessians(x, problem, params, ref)
-            - _pressure_blocks(x, problem, params), problem.triangles)]
+            - pressure_blocks(x, problem, params), problem.triangles)]
     if ref.hinge_w is not None and params.bending is not None:
-        D = params.bending.scale * plate_modulus(params.material, params.thickness)
-        one = lambda xh, tl, w: bending_energy(xh, jnp.array([[0, 1, 2, 3, 0, 1]]),
-                                               w[None], D, tl)
-        out.append((jax.vmap(jax.hessian(one))(x[hinge_nodes], hinge_tris, ref.hinge_w)
-                    .reshape(-1, 12, 12), hinge_nodes))
+        out.append((hinge_hessians(x, params, ref, hinge_nodes, hinge_tris), hinge_nodes))
     if isinstance(nbrs, SoftPairs) and params.contact is not None:
         out.append(_contact_blocks(x, problem, params, ref, nbrs))
     return out
 
 
 def _hinge_args(problem):
-    hn, ht = _local_hinges(problem) if problem.hinges is not None else (None, None)
+    hn, ht = local_hinges(problem) if problem.hinges is not None else (None, None)
     return (None if hn is None else jnp.asarray(hn)), (None if ht is None else jnp.asarray(ht))
 
 

@@ -150,7 +150,7 @@ def close(valve: Valve, material, pressure_mmhg=80.0, *, solver=None, contact=No
     graze through each other between nodes (coarse meshes, at the three-leaflet
     junction) nor pull back leaflets started more than ~1 mm through one another; and a
     mass-spring triangle turned over has the same spring lengths, so only bending resists
-    it.  Without this check such states are returned as converged (README, Known limits).
+    it.  Without this check such states are returned as converged (docs/known-limits.md).
     nbrs: a contact pair list to start from (`equilibrium.solve`), e.g. an empty one of
     larger capacity (`equilibrium.stale_pairs`) so that a crumpling closure does not
     overflow and recompile."""

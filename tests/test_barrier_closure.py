@@ -15,7 +15,7 @@ from jaxvalve.solvers.barrier_newton import _Model
 from jaxvalve.valve import leaflet_crossings
 
 #: the benchmark valve at a coarse mesh (3 x 457 triangles); at h = 2-2.5 mm the solve
-#: jumps into creased states or stagnates (README, Known limits)
+#: jumps into creased states or stagnates (docs/known-limits.md)
 H = 1.5
 
 

@@ -75,6 +75,7 @@ def test_ramp_brackets_the_analytic_limit_point(sphere):
     results = [h[1] for h in out.history]
     assert set(results) == {"successful", "escaped"}
     assert "limit_point" in out.describe() and f"{out.pressure:.4g}" in out.describe()
+    assert out.final == (out.solution, out.pressure)
 
 
 def test_ramp_below_the_limit_converges_in_one_solve(sphere):
@@ -92,6 +93,20 @@ def test_another_failure_is_never_called_a_limit_point(sphere):
     assert out.status == "max_steps_reached" and out.pressure == 0.0
     assert out.solution is None and int(out.failure.result) == RESULTS.max_steps_reached
     assert "max_steps_reached" in out.describe()
+    assert out.final == (out.failure, 0.5 * p_max)
+
+
+def test_no_equilibrium_above_the_start_is_not_a_limit_point(sphere):
+    prob, ref, x0, p_max, r_eff = sphere
+    # every pressure above 1.005 P_max runs away; the unloaded start is no equilibrium at
+    # 1.005 P_max, so there is no equilibrium to report: 'escaped', with the runaway shown
+    out = ramp(_solver(prob, ref, FIRE(rtol=1e-8, max_steps=20_000)), x0, 2.0 * p_max,
+               p_start=1.005 * p_max)
+    assert out.status == "escaped" and out.solution is None
+    assert {h[1] for h in out.history} == {"escaped"}
+    assert out.p_escape - out.pressure <= 0.01 * out.p_escape
+    sol, p = out.final
+    assert sol is out.failure and p == out.history[-1][0]
 
 
 def test_ramp_rejects_bad_settings(sphere):

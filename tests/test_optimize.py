@@ -95,7 +95,7 @@ def test_objective_terms_are_the_formulas_and_differentiable():
 @pytest.fixture(scope="module")
 def evaluator():
     """Benchmark root at h = 2.5 mm, both loads at 3 mmHg (coarse meshes do not close at
-    80 mmHg; README Known limits), targets around the start so every term is active."""
+    80 mmHg; docs/known-limits.md), targets around the start so every term is active."""
     sc = Scene(h=2.5, pressure=3.0, rtol=1e-9, max_steps=100_000)
     obj = Objective(targets=(Target("h_c", lower=30.0), Target("h", value=8.0),
                              Target("h_E", lower=22.0)), size_weight=0.1,

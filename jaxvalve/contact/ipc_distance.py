@@ -71,11 +71,15 @@ def _point_line2(p, a, b):
     return _dot(c, c) / jnp.where(ee > 0, ee, 1.0)
 
 
-def _point_plane2(p, t0, t1, t2):
-    n = jnp.cross(t1 - t0, t2 - t0)
+def _along2(n, d):
+    """(n . d)^2 / |n|^2: the squared length of d along the normal n (0 where n = 0)."""
     nn = _dot(n, n)
-    s = _dot(n, p - t0)
+    s = _dot(n, d)
     return s * s / jnp.where(nn > 0, nn, 1.0)
+
+
+def _point_plane2(p, t0, t1, t2):
+    return _along2(jnp.cross(t1 - t0, t2 - t0), p - t0)
 
 
 def _point_point2(p, q):
@@ -144,10 +148,7 @@ def edge_edge_distance2(ea0, ea1, eb0, eb1, types=None):
 
 def line_line_distance2(ea0, ea1, eb0, eb1):
     """Squared distance (mm^2) between the lines through the two edges."""
-    n = jnp.cross(ea1 - ea0, eb1 - eb0)
-    nn = _dot(n, n)
-    s = _dot(n, ea0 - eb0)
-    return s * s / jnp.where(nn > 0, nn, 1.0)
+    return _along2(jnp.cross(ea1 - ea0, eb1 - eb0), ea0 - eb0)
 
 
 def mollifier_threshold(la, lb):

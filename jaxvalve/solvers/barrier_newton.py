@@ -39,7 +39,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from .. import assembly, bending
+from .. import assembly, tangent
 from ..contact import ccd
 from ..contact.barrier import ee_energies, pt_energies
 from ..contact.ipc_pairs import BarrierTopology, build_pairs, pair_distances2
@@ -113,33 +113,14 @@ def _triangle_blocks(x, problem, params, ref):
     of its pressure stiffness, not projected (projecting the sum, or nothing, took more
     iterations on the benchmark valve: module docstring)."""
     H = assembly._element_hessians(x, problem, params, ref)
-
-    def f_p(xe):
-        v = xe.reshape(3, 3)
-        an = jnp.cross(v[1] - v[0], v[2] - v[0]) / 6.0
-        return params.pressure * jnp.tile(an, 3)
-
-    J = jax.vmap(jax.jacfwd(f_p))(x[problem.triangles].reshape(-1, 9))
+    J = tangent.pressure_blocks(x, problem, params)
     return _psd(H) - 0.5 * (J + jnp.swapaxes(J, 1, 2))
 
 
 @jax.jit
-def _hinge_blocks(x, problem, params, ref, local):
-    """(K, 12, 12) bending Hessians per hinge, projected; local (K, 2, 3): the positions of
-    each hinge triangle's vertices among the hinge's four nodes."""
-    D = params.bending.scale * bending.plate_modulus(params.material, params.thickness)
-
-    def e_h(xh, w, loc):
-        v = xh.reshape(4, 3)
-        n = []
-        for s in range(2):
-            a, b, c = v[loc[s, 0]], v[loc[s, 1]], v[loc[s, 2]]
-            m = jnp.cross(b - a, c - a)
-            n.append(m / jnp.sqrt(jnp.sum(m * m)))
-        return D * w * (1.0 - jnp.sum(n[0] * n[1]))
-
-    xh = x[problem.hinges[:, :4]].reshape(-1, 12)
-    return _psd(jax.vmap(jax.hessian(e_h))(xh, ref.hinge_w, local))
+def _hinge_blocks(x, params, ref, hinge_nodes, hinge_tris):
+    """(K, 12, 12) bending Hessians per hinge (`tangent.hinge_hessians`), projected."""
+    return _psd(tangent.hinge_hessians(x, params, ref, hinge_nodes, hinge_tris))
 
 
 @jax.jit
@@ -224,14 +205,12 @@ class _Model:
         self.nf = int(dof_free.sum())
         tri = np.asarray(problem.triangles)
         self.tri_dofs = (3 * tri[:, :, None] + np.arange(3)).reshape(-1, 9)
-        if self.ref.hinge_w is not None:
-            hin = np.asarray(problem.hinges)
-            self.hinge_dofs = (3 * hin[:, :4, None] + np.arange(3)).reshape(-1, 12)
-            t = tri[hin[:, 4:6]]                                           # (K, 2, 3)
-            self.local = np.argmax(t[..., None] == hin[:, None, None, :4], axis=-1)
+        self.bends = self.ref.hinge_w is not None and params.bending is not None
+        if self.bends:
+            self.hinge_nodes, self.hinge_tris = tangent.local_hinges(problem)
+            self.hinge_dofs = (3 * self.hinge_nodes[:, :, None] + np.arange(3)).reshape(-1, 12)
         else:
             self.hinge_dofs = np.zeros((0, 12), np.int64)
-            self.local = np.zeros((0, 2, 3), np.int64)
         self._static = self._pattern([self.tri_dofs, self.hinge_dofs])
         self.n = n
 
@@ -263,8 +242,9 @@ class _Model:
         at the same time) hung in a futex wait after 40-120 calls (jaxlib 0.10.1)."""
         xj = jnp.asarray(x)
         tb = np.asarray(_triangle_blocks(xj, self.problem, self.params, self.ref))
-        hb = (np.asarray(_hinge_blocks(xj, self.problem, self.params, self.ref, self.local))
-              if self.ref.hinge_w is not None else np.zeros((0, 12, 12)))
+        hb = (np.asarray(_hinge_blocks(xj, self.params, self.ref, self.hinge_nodes,
+                                       self.hinge_tris))
+              if self.bends else np.zeros((0, 12, 12)))
         data = np.concatenate([tb.reshape(-1), hb.reshape(-1)])
         st = self._static
         vals = np.bincount(st["slot"], weights=data[st["keep"]], minlength=st["nnz"])
