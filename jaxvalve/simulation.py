@@ -249,8 +249,8 @@ def simulate(scene: Scene | None = None, *, progress: Callable[[str], None] | No
             jax.block_until_ready(sol.x)
             wall = time.perf_counter() - t0
         if len(rr.history) > 1:
-            say("  continuation: " + ", ".join(f"{q:.3g} mmHg {r}" for q, r, _, _ in
-                                               rr.history))
+            say("  continuation: " + ", ".join(f"{q:.3g} mmHg {r} ({n} steps)"
+                                               for q, r, n, _ in rr.history))
         limit = rr.pressure if rr.limit_point else None
         rep = SolveReport(pressure=float(p),
                           result=RESULTS.successful.name if rr.converged else rr.status,

@@ -51,6 +51,9 @@ def test_a_load_past_the_limit_runs_away(sphere):
     prob, ref, x0, p_max, r_eff = sphere
     run = _solver(prob, ref, FIRE(rtol=1e-8, max_steps=20_000))
     below, above = run(0.99 * p_max, x0), run(1.01 * p_max, x0)
+    print(f"\nsphere, FIRE: 0.99 P_max {RESULTS(int(below.result)).name} in "
+          f"{int(below.stats.steps)} steps; 1.01 P_max {RESULTS(int(above.result)).name} "
+          f"in {int(above.stats.steps)} steps, stretch {_stretch(above.x):.2f}")
     assert below.converged and _stretch(below.x) < analytic.NEO_HOOKEAN_LIMIT_STRETCH
     # 1 % above the limit the sphere inflates until a node has moved a diameter
     assert int(above.result) == RESULTS.escaped
@@ -61,6 +64,8 @@ def test_ramp_brackets_the_analytic_limit_point(sphere):
     prob, ref, x0, p_max, r_eff = sphere
     out = ramp(_solver(prob, ref, FIRE(rtol=1e-8, max_steps=20_000)), x0, 2.0 * p_max,
                settings=Ramp(rtol=0.005))
+    print(f"\nramp: {out.status}, bracket [{out.pressure:.7g}, {out.p_escape:.7g}] MPa, "
+          f"analytic P_max {p_max:.7g} MPa, {len(out.history)} solves")
     assert out.status == "limit_point" and not out.converged
     # the bracket holds the analytic limit of the effective sphere to 0.2 % (the discrete
     # limit lies 1e-4 below it: the flat-facet radius is not exact at this stretch)
