@@ -49,18 +49,23 @@ def platform_summary() -> str:
     import jax
     import jaxlib
 
-    model, flags = platform.processor() or platform.machine(), set()
+    model, flags, ident = platform.processor() or platform.machine(), set(), {}
     try:
         with open("/proc/cpuinfo") as f:
             for line in f:
                 key, _, value = line.partition(":")
-                if key.strip() == "model name":
+                key = key.strip()
+                if key == "model name":
                     model = value.strip()
-                elif key.strip() == "flags":
+                elif key in ("cpu family", "model") and key not in ident:
+                    ident[key] = value.strip()
+                elif key == "flags":
                     flags = set(value.split())
                     break
     except OSError:
         pass
+    if ident:      # VMs often name the CPU vaguely ("AMD EPYC"): family and model tell more
+        model += f" (family {ident.get('cpu family', '?')} model {ident.get('model', '?')})"
     isa = "/".join(n for n in ("avx512f", "avx2", "avx", "fma") if n in flags) or "unknown"
     return (f"jax {jax.__version__}, jaxlib {jaxlib.__version__}, {model}, "
             f"{os.cpu_count()} cores, ISA {isa}, "

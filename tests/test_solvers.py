@@ -19,6 +19,19 @@ def disk():
     return prob, ref, jnp.asarray(meshgen.lift(p))
 
 
+def _op_by_op(prob, params, x):
+    """The relative residual ||F_free|| / ||F_pressure|| and the stretch check of the state
+    x, evaluated op by op (no jit): a check of a solve's result that does not go through
+    the solver's compiled loop."""
+    from jaxvalve import assembly
+    with jax.disable_jit():
+        r = assembly.prepare(prob, params)
+        F = assembly.residual(x, prob, params, r)
+        Fp = assembly.pressure_force(x, prob.triangles, params.pressure) * prob.free[:, None]
+        ok = assembly.stretch_admissible(x, prob, params, r)
+        return float(jnp.linalg.norm(F) / jnp.linalg.norm(Fp)), bool(ok)
+
+
 def _params(ref, mat=None, P=80.0):
     mat = StVenantKirchhoff(E=1.0, nu=0.45) if mat is None else mat
     return Params(ref=ref, material=mat, thickness=0.3, pressure=mmhg(P))
@@ -33,8 +46,10 @@ def test_all_solvers_reach_the_same_equilibrium(disk, mat):
     solvers = (NewtonKrylov(rtol=1e-8), FIRE(rtol=1e-8), FixedPoint(rtol=1e-8))
     sols = [equilibrium.solve(prob, params, x0, s, throw=False) for s in solvers]
     for solver, s in zip(solvers, sols):      # the message names the solver that failed
+        check = _op_by_op(prob, params, s.x)  # (residual, admissible) outside the solver loop
         assert s.converged and float(s.stats.residual) < 1e-8, (type(solver).__name__,
-                                                                 s.describe())
+                                                                 s.describe(), check)
+        assert check[0] < 2e-8 and check[1], (type(solver).__name__, s.describe(), check)
     for s in sols[1:]:
         np.testing.assert_allclose(s.x, sols[0].x, atol=1e-6)
     x = sols[0].x
@@ -90,11 +105,45 @@ def test_iteration_limit_is_reported_with_residual(disk):
 
 
 def test_gent_stretch_limit_is_reported(disk):
+    """A start past the Gent limit (every triangle stretched 1.3x in-plane, I1 + 1/I2 - 3
+    = 0.97 against Jm = 0.05) has no admissible step: FIRE reports stretch_limit, with a
+    finite state, and so does Newton."""
     prob, ref, x0 = disk
-    params = _params(ref, Gent(mu=1 / 3, Jm=0.05), P=2000.0)
-    sol = equilibrium.solve(prob, params, x0, FIRE(), throw=False)
-    assert int(sol.result) == RESULTS.stretch_limit
-    assert np.all(np.isfinite(np.asarray(sol.x)))
+    params = _params(ref, Gent(mu=1 / 3, Jm=0.05), P=80.0)
+    past = x0 * jnp.asarray([1.3, 1.3, 1.0])
+    for solver in (FIRE(), NewtonKrylov()):
+        sol = equilibrium.solve(prob, params, past, solver, throw=False)
+        assert int(sol.result) == RESULTS.stretch_limit, (type(solver).__name__, sol.describe())
+        assert np.all(np.isfinite(np.asarray(sol.x)))
+
+
+@pytest.mark.parametrize("Jm,P", [(0.05, 2000.0), (0.05, 20000.0)])
+def test_fire_refuses_steps_past_the_gent_limit(disk, Jm, P):
+    """FIRE's inertia carries a stiffening membrane towards the Gent limit; a step past it
+    is refused (state kept, velocity zeroed, dt halved), so the solve converges inside the
+    limit where an equilibrium lies.  At 2000 mmHg it matches Newton; at 20000 mmHg (Newton
+    stagnates there) the state is admissible, with the bulge higher than at 2000 mmHg and
+    the triangles within 10 % of the limit."""
+    from jaxvalve import assembly
+    prob, ref, x0 = disk
+    params = _params(ref, Gent(mu=1 / 3, Jm=Jm), P=P)
+    fire = equilibrium.solve(prob, params, x0, FIRE(rtol=1e-8), throw=False)
+    assert fire.converged and float(fire.stats.residual) < 1e-8, fire.describe()
+    r = assembly.prepare(prob, params)
+    assert bool(assembly.stretch_admissible(fire.x, prob, params, r))
+    C = assembly.right_cauchy_green(fire.x, prob.triangles, r.Dm_inv)
+    tr = jnp.trace(C, axis1=-2, axis2=-1)
+    x = (tr + 1.0 / jnp.linalg.det(C) - 3.0) / Jm
+    if P < 10000:
+        newton = equilibrium.solve(prob, params, x0, NewtonKrylov(rtol=1e-8), throw=False)
+        assert newton.converged, newton.describe()
+        np.testing.assert_allclose(fire.x, newton.x, atol=1e-6)
+        assert 0.5 < float(jnp.max(x)) < 1.0
+    else:
+        lower = equilibrium.solve(prob, _params(ref, Gent(mu=1 / 3, Jm=Jm), P=2000.0), x0,
+                                  FIRE(rtol=1e-8), throw=False)
+        assert float(fire.x[0, 2]) > float(lower.x[0, 2])
+        assert 0.9 < float(jnp.max(x)) < 1.0
 
 
 @pytest.mark.parametrize("Jm,P", [(0.3, 80.0), (0.07, 120.0)])
@@ -105,8 +154,8 @@ def test_newton_starts_a_gent_membrane_whose_trial_bulges_pass_the_limit(disk, J
     face value, it either kept the bracket growing, so that the predictor left the membrane
     flat and Newton stagnated there at a relative residual of 1 (Jm = 0.07), or gave a
     bulge past the limit, reported as stretch_limit (Jm = 0.3).)  The solve converges
-    inside the limit to the equilibrium FIRE finds, and with more pressure the bulge is
-    higher."""
+    inside the limit to the equilibrium FIRE finds (FIRE refuses steps past the limit), and
+    with more pressure the bulge is higher."""
     from jaxvalve import assembly
     prob, ref, x0 = disk
     params = _params(ref, Gent(mu=1 / 3, Jm=Jm), P=P)
@@ -114,10 +163,9 @@ def test_newton_starts_a_gent_membrane_whose_trial_bulges_pass_the_limit(disk, J
     assert newton.converged and float(newton.stats.residual) < 1e-8, newton.describe()
     assert bool(assembly.stretch_admissible(newton.x, prob, params, assembly.prepare(prob, params)))
     fire = equilibrium.solve(prob, params, x0, FIRE(rtol=1e-8), throw=False)
-    if fire.converged:          # FIRE's inertia can overshoot the limit (then it reports so)
-        np.testing.assert_allclose(newton.x, fire.x, atol=1e-6)
-    else:
-        assert int(fire.result) == RESULTS.stretch_limit, fire.describe()
+    check = _op_by_op(prob, params, fire.x)   # (residual, admissible) outside the loop
+    assert fire.converged and check[0] < 2e-8 and check[1], (fire.describe(), check)
+    np.testing.assert_allclose(newton.x, fire.x, atol=1e-6)
     lower = equilibrium.solve(prob, _params(ref, Gent(mu=1 / 3, Jm=Jm), P=0.5 * P), x0,
                               NewtonKrylov(rtol=1e-8), throw=False)
     assert lower.converged, lower.describe()

@@ -13,7 +13,14 @@ from .base import RESULTS, check_state, relative_residual
 class FIRE:
     """FIRE with per-node masses equal to the stiffness bound (N/mm), so that every mode has
     angular frequency <= 1 and ``dt_max`` is dimensionless.  Masses are refreshed every
-    ``refresh`` steps (stiffening materials).  Stops at relative residual < rtol."""
+    ``refresh`` steps (stiffening materials).  Stops at relative residual < rtol.
+
+    A step that would leave the admissible set (a triangle past the Gent stretch limit, or
+    collapsed) is not taken: the state stays, the velocity is zeroed and dt halved, as on
+    uphill motion.  Inertia near the Gent limit, where the stiffness rises without bound,
+    otherwise carries the state past the limit (a failure) although an equilibrium lies
+    inside it.  Only once dt falls below ``dt_min`` (no admissible step) does the solve
+    stop, as `RESULTS.stretch_limit`."""
 
     rtol: float = 1e-6
     max_steps: int = 50_000
@@ -25,6 +32,7 @@ class FIRE:
     alpha_start: float = 0.1
     f_alpha: float = 0.99
     refresh: int = 100
+    dt_min: float = 1e-6
 
     def _mass(self, system, y, args):
         b = system.bound(y, args)
@@ -65,6 +73,7 @@ class FIRE:
         alpha = jnp.where(grow, s["alpha"] * self.f_alpha,
                           jnp.where(up | first, s["alpha"], self.alpha_start))
         # on uphill motion: step back half a step and stop (FIRE 2.0)
+        y0 = y
         y = jnp.where(up, y, y - 0.5 * s["dt"] * v / sq)
         v = jnp.where(up, v, 0.0)
         v = v + dt * f
@@ -76,6 +85,15 @@ class FIRE:
         dy = dy * jnp.minimum(1.0, args["max_move"] / jnp.where(big > 0, big, 1.0))
         y = y + dy
         F = system.force(y, args)
+        # a step out of the admissible set is refused: back to y0 (whose force is s["F"]),
+        # at rest, with half the time step (the null step 0 is never refused: F(y0) is new)
+        refuse = ~first & ~system.admissible(y, args)
+        y = jnp.where(refuse, y0, y)
+        F = jnp.where(refuse, s["F"], F)
+        v = jnp.where(refuse, 0.0, v)
+        dt = jnp.where(refuse, dt * self.f_dec, dt)
+        alpha = jnp.where(refuse, self.alpha_start, alpha)
+        npos = jnp.where(refuse, 0, npos)
         n = s["n"] + 1
         return y, dict(F=F, v=v, m=m, dt=dt, alpha=alpha, npos=npos, n=n, evals=s["evals"] + 1)
 
@@ -83,6 +101,8 @@ class FIRE:
         started = s["n"] > 0                      # F is the force at y after step 0
         ok = started & (relative_residual(system, y, args, s["F"]) < self.rtol)
         bad = jnp.where(started, check_state(system, y, args, s["F"]), -1)
+        # refused steps shrank dt to nothing: every step from y leaves the admissible set
+        bad = jnp.where((bad < 0) & (s["dt"] < self.dt_min), RESULTS.stretch_limit, bad)
         return ok | (bad >= 0), jnp.where(bad >= 0, bad, RESULTS.successful)
 
     def stats(self, s):
