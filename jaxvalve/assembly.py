@@ -88,9 +88,11 @@ def elastic_energy(x, problem, params, ref):
 
 
 def stretch_admissible(x, problem, params, ref):
-    """True when every triangle is within the model's stretch limit (Gent) and not collapsed."""
+    """True when every triangle is within the model's stretch limit (Gent) and not collapsed.
+    A minimum over the float margins, not an AND over booleans: the CI's machine has
+    returned impossible Gent states from compiled solver loops (docs/known-limits.md)."""
     C = right_cauchy_green(x, problem.triangles, ref.Dm_inv)
-    return jnp.all(params.material.stretch_ok(C))
+    return jnp.min(params.material.stretch_margin(C)) > 0
 
 
 def area_normals(x, triangles):

@@ -69,10 +69,15 @@ class Material:
         """The same model at its largest tangent modulus; used only for stiffness bounds."""
         return self
 
+    def stretch_margin(self, C):
+        """Float (M,): positive where the state is admissible for this model (finite
+        energy); here det C (a collapsed or inverted triangle has none)."""
+        _, det = invariants(C)
+        return det
+
     def stretch_ok(self, C):
         """Bool (M,): state admissible for this model (finite energy)."""
-        _, det = invariants(C)
-        return det > 0
+        return self.stretch_margin(C) > 0
 
 
 @_pytree
@@ -106,8 +111,8 @@ class StVenantKirchhoff(Material):
         trE2 = jnp.sum(Eg * jnp.swapaxes(Eg, -1, -2), axis=(-1, -2))
         return 0.5 * lam * trE**2 + mu * trE2
 
-    def stretch_ok(self, C):
-        return jnp.ones(C.shape[:-2], bool)
+    def stretch_margin(self, C):
+        return jnp.ones(C.shape[:-2], C.dtype)
 
 
 @_pytree
@@ -167,9 +172,11 @@ class Gent(Material):
         arg_s, ok2 = _safe_positive(arg)
         return jnp.where(ok & ok2, -0.5 * self.Jm * self.mu * jnp.log(arg_s), jnp.inf)
 
-    def stretch_ok(self, C):
-        arg, ok = self._arg(C)
-        return ok & (arg > 0)
+    def stretch_margin(self, C):
+        """min(det C, 1 - (I1 + 1/I2 - 3)/Jm): positive inside the stretch limit."""
+        _, det = invariants(C)
+        arg, _ = self._arg(C)
+        return jnp.minimum(det, arg)
 
 
 @_pytree
@@ -293,8 +300,8 @@ class MassSpring(Material):
         E1, E2, E3 = self.moduli(geom.cos2)
         return jnp.sum(_piecewise_psi(eps, E1, E2, E3, self.break1, self.break2), axis=-1)
 
-    def stretch_ok(self, C):
-        return jnp.ones(C.shape[:-2], bool)
+    def stretch_margin(self, C):
+        return jnp.ones(C.shape[:-2], C.dtype)
 
 
 MODELS = {"stvk": StVenantKirchhoff, "neo-hookean": NeoHookean, "gent": Gent,

@@ -50,7 +50,8 @@ class FIRE:
                     m=jnp.ones((y.shape[0], 1), y.dtype),
                     dt=jnp.asarray(self.dt_start, y.dtype),
                     alpha=jnp.asarray(self.alpha_start, y.dtype),
-                    npos=jnp.asarray(0), n=jnp.asarray(0), evals=jnp.asarray(0))
+                    npos=jnp.asarray(0), n=jnp.asarray(0), evals=jnp.asarray(0),
+                    refused=jnp.asarray(False))
 
     def step(self, system, y, args, s):
         F, v = s["F"], s["v"]
@@ -95,14 +96,17 @@ class FIRE:
         alpha = jnp.where(refuse, self.alpha_start, alpha)
         npos = jnp.where(refuse, 0, npos)
         n = s["n"] + 1
-        return y, dict(F=F, v=v, m=m, dt=dt, alpha=alpha, npos=npos, n=n, evals=s["evals"] + 1)
+        return y, dict(F=F, v=v, m=m, dt=dt, alpha=alpha, npos=npos, n=n, evals=s["evals"] + 1,
+                       refused=refuse)
 
     def terminate(self, system, y, args, s):
         started = s["n"] > 0                      # F is the force at y after step 0
         ok = started & (relative_residual(system, y, args, s["F"]) < self.rtol)
         bad = jnp.where(started, check_state(system, y, args, s["F"]), -1)
         # refused steps shrank dt to nothing: every step from y leaves the admissible set
-        bad = jnp.where((bad < 0) & (s["dt"] < self.dt_min), RESULTS.stretch_limit, bad)
+        # (dt also shrinks on uphill motion: that alone is no reason to stop)
+        stuck = s["refused"] & (s["dt"] < self.dt_min)
+        bad = jnp.where((bad < 0) & stuck, RESULTS.stretch_limit, bad)
         return ok | (bad >= 0), jnp.where(bad >= 0, bad, RESULTS.successful)
 
     def stats(self, s):
