@@ -129,12 +129,14 @@ def escaped(y, x0, distance):
     return jnp.max(jnp.sum((y - x0) ** 2, axis=-1)) > distance**2
 
 
-def check_state(system, y, args, F):
+def check_state(system, y, args, F, admissible=None):
     """RESULTS code for an invalid state (nonfinite / stretch limit / overflow / escaped),
-    else -1.  ``args`` holds the solve's start ``x_start`` and ``escape`` distance (mm)."""
+    else -1.  ``args`` holds the solve's start ``x_start`` and ``escape`` distance (mm).
+    admissible: ``system.admissible(y, args)`` where the solver has it already."""
     finite = jnp.all(jnp.isfinite(y)) & jnp.all(jnp.isfinite(F))
     code = jnp.where(~finite, RESULTS.nonfinite, -1)
-    code = jnp.where((code < 0) & ~system.admissible(y, args), RESULTS.stretch_limit, code)
+    admissible = system.admissible(y, args) if admissible is None else admissible
+    code = jnp.where((code < 0) & ~admissible, RESULTS.stretch_limit, code)
     code = jnp.where((code < 0) & escaped(y, args["x_start"], args["escape"]),
                      RESULTS.escaped, code)
     code = jnp.where((code < 0) & system.overflow(args), RESULTS.neighbour_overflow, code)

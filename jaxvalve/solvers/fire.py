@@ -51,7 +51,7 @@ class FIRE:
                     dt=jnp.asarray(self.dt_start, y.dtype),
                     alpha=jnp.asarray(self.alpha_start, y.dtype),
                     npos=jnp.asarray(0), n=jnp.asarray(0), evals=jnp.asarray(0),
-                    refused=jnp.asarray(False))
+                    refused=jnp.asarray(False), admissible=jnp.asarray(True))
 
     def step(self, system, y, args, s):
         F, v = s["F"], s["v"]
@@ -88,7 +88,8 @@ class FIRE:
         F = system.force(y, args)
         # a step out of the admissible set is refused: back to y0 (whose force is s["F"]),
         # at rest, with half the time step (the null step 0 is never refused: F(y0) is new)
-        refuse = ~first & ~system.admissible(y, args)
+        admissible = system.admissible(y, args)
+        refuse = ~first & ~admissible
         y = jnp.where(refuse, y0, y)
         F = jnp.where(refuse, s["F"], F)
         v = jnp.where(refuse, 0.0, v)
@@ -97,12 +98,13 @@ class FIRE:
         npos = jnp.where(refuse, 0, npos)
         n = s["n"] + 1
         return y, dict(F=F, v=v, m=m, dt=dt, alpha=alpha, npos=npos, n=n, evals=s["evals"] + 1,
-                       refused=refuse)
+                       refused=refuse, admissible=admissible | refuse)
 
     def terminate(self, system, y, args, s):
         started = s["n"] > 0                      # F is the force at y after step 0
         ok = started & (relative_residual(system, y, args, s["F"]) < self.rtol)
-        bad = jnp.where(started, check_state(system, y, args, s["F"]), -1)
+        # the step checked y's stretch (a refused step keeps y0, admissible since step 0)
+        bad = jnp.where(started, check_state(system, y, args, s["F"], s["admissible"]), -1)
         # refused steps shrank dt to nothing: every step from y leaves the admissible set
         # (dt also shrinks on uphill motion: that alone is no reason to stop)
         stuck = s["refused"] & (s["dt"] < self.dt_min)
