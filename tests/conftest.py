@@ -1,6 +1,6 @@
 """Test configuration: float64 everywhere, warnings are errors (see pyproject), XLA's
-quicker-compiling CPU emitters, and one persistent XLA compilation cache for the run,
-removed at its end."""
+quicker-compiling CPU emitters, and no persistent XLA compilation cache: every worker runs
+the executables it compiled itself."""
 import os
 
 #: The suite is compile-bound: most tests compile a program and run it for little time.
@@ -19,12 +19,6 @@ if os.environ.get("JAXVALVE_TEST_DEFAULT_EMITTERS") != "1":
 import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
-
-import shutil
-import tempfile
-
-_CACHE_ENV = "JAXVALVE_TEST_XLA_CACHE"
-
 
 #: Test files by their measured time in `.ci/run` (seconds of one xdist worker, session
 #: 17, `--durations`), longest first.  With `--dist loadfile` the workers take whole files
@@ -55,30 +49,22 @@ def pytest_collection_modifyitems(session, config, items):
 
 
 def pytest_configure(config):
-    """The same programs (a valve closure at one mesh size, the metrics) are compiled by
-    several test files, in two xdist workers.  The controlling process makes one
-    temporary cache directory before the workers start (they inherit its path), and every
-    process keeps its XLA executables there, so a program compiled once is loaded by the
-    other files.  The in-memory jit caches that the no-recompilation tests count are not
-    affected.  The user's own cache (``$JAXVALVE_CACHE_DIR``, used by the CLI) is never
-    touched."""
+    """Keep the order above (xdist), and run without a persistent compilation cache.
+
+    A cache shared by the two workers saved about a minute of compilation, but every
+    executable it reloads comes with XLA's "machine type used for compilation doesn't
+    match" error on this CPU family (jax-ml/jax#38445), and JAX writes its entries without
+    a lock or an atomic rename.  The CI's intermittent wrong results (docs/known-limits.md)
+    never reproduced here, with the cache or without; a correctness suite should not run
+    programs that XLA itself flags, so the suite compiles what it runs.  The user's own
+    cache (``$JAXVALVE_CACHE_DIR``, used by the CLI) is never touched: it is set to off
+    for the test processes."""
     if hasattr(config.option, "loadscopereorder"):
         config.option.loadscopereorder = False      # keep the order above (xdist)
-    if not hasattr(config, "workerinput") and _CACHE_ENV not in os.environ:
-        os.environ[_CACHE_ENV] = tempfile.mkdtemp(prefix="jaxvalve-test-xla-")
-        config._jaxvalve_cache = os.environ[_CACHE_ENV]
-    os.environ["JAXVALVE_CACHE_DIR"] = os.environ[_CACHE_ENV]
-    from jaxvalve.cli import enable_compilation_cache
-    enable_compilation_cache()
+    os.environ["JAXVALVE_CACHE_DIR"] = "off"
 
 
 def pytest_terminal_summary(terminalreporter):
     """One line naming the platform, so that a failure on another machine (the CI's) can be
     matched to its CPU and JAX release."""
     terminalreporter.write_line(f"jaxvalve test platform: {platform_summary()}")
-
-
-def pytest_unconfigure(config):
-    path = getattr(config, "_jaxvalve_cache", None)
-    if path:
-        shutil.rmtree(path, ignore_errors=True)
