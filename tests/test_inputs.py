@@ -7,6 +7,9 @@ from jaxvalve import equilibrium, meshgen
 from jaxvalve.errors import MeshError, ParameterError
 from jaxvalve.materials import Gent, MassSpring, NeoHookean, StVenantKirchhoff
 from jaxvalve.problem import Params, make_problem, validate_params
+from jaxvalve.solvers import FIRE, FixedPoint, NewtonKrylov
+from jaxvalve.solvers.barrier_newton import BarrierNewton
+from jaxvalve.solvers.predictor import BulgePredictor
 
 P, T = meshgen.rectangle(2.0, 1.0, 2, 1)
 
@@ -72,3 +75,39 @@ def test_bad_thickness_pressure_and_start_are_rejected():
         equilibrium.solve(prob, good, x0.at[1, 2].set(jnp.nan))
     with pytest.raises(ParameterError, match=r"x0 must have shape \(6, 3\)"):
         equilibrium.solve(prob, good, x0[:, :2])
+
+
+@pytest.mark.parametrize("make, match", [
+    (lambda: FIRE(rtol=0.0), r"FIRE\.rtol must be finite and > 0; got 0\.0"),
+    (lambda: FIRE(rtol=float("nan")), r"FIRE\.rtol must be finite"),
+    (lambda: FIRE(max_steps=1e4), r"FIRE\.max_steps must be an integer >= 0"),
+    (lambda: FIRE(f_dec=1.0), r"FIRE\.f_dec must be in \(0, 1\)"),
+    (lambda: FIRE(f_inc=0.9), r"FIRE\.f_inc must be finite and > 1"),
+    (lambda: FIRE(dt_start=2.0), r"dt_min < dt_start <= dt_max"),
+    (lambda: FIRE(refresh=True), r"FIRE\.refresh must be an integer >= 1"),
+    (lambda: NewtonKrylov(eta_min=0.5, eta_max=0.1), r"eta_min <= eta_max"),
+    (lambda: NewtonKrylov(cg_max=0), r"NewtonKrylov\.cg_max must be an integer >= 1"),
+    (lambda: NewtonKrylov(warm_start=("bulge",)), r"NewtonKrylov\.warm_start must hold solvers"),
+    (lambda: FixedPoint(safety=2.0), r"FixedPoint\.safety must lie in \(0, 2\)"),
+    (lambda: FixedPoint(delta=-1.0), r"FixedPoint\.delta must be finite and > 0 \(or None\)"),
+    (lambda: FixedPoint(step_rtol=1.5), r"FixedPoint\.step_rtol must be in \(0, 1\)"),
+    (lambda: BulgePredictor(root_steps=0), r"BulgePredictor\.root_steps must be an integer"),
+    (lambda: BarrierNewton(ccd_s=1.0), r"BarrierNewton\.ccd_s must be in \(0, 1\)"),
+    (lambda: BarrierNewton(krylov_iters=2.5), r"BarrierNewton\.krylov_iters must be an integer"),
+])
+def test_bad_solver_settings_are_rejected_when_the_solver_is_made(make, match):
+    """Every solver checks its settings in ``__post_init__`` (one shared check,
+    `solvers.base.check_settings`): the error names the setting and its range before
+    anything is traced."""
+    with pytest.raises(ParameterError, match=match):
+        make()
+
+
+def test_valid_solver_settings_are_accepted():
+    """The edges of the ranges that the solvers use (no steps at all, None for the paper's
+    rule and the derived delta, NumPy scalars) are valid."""
+    FIRE(max_steps=0)
+    FIRE(rtol=np.float64(1e-6), max_steps=np.int64(5), f_alpha=1.0)
+    FixedPoint(rtol=None, delta=None, refresh=0)
+    NewtonKrylov(warm_start=None, ls_steps=0)
+    BarrierNewton()

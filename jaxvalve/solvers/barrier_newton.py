@@ -45,7 +45,7 @@ from ..contact.barrier import ee_energies, pt_energies
 from ..contact.ipc_pairs import BarrierTopology, build_pairs, pair_distances2
 from ..checks import FOLD_DEG
 from ..errors import ParameterError
-from .base import RESULTS, Solution, Stats, escape_distance
+from .base import RESULTS, Solution, Stats, check_settings, escape_distance
 
 __all__ = ["BarrierNewton", "solve_barrier", "CHUNK"]
 
@@ -76,15 +76,11 @@ class BarrierNewton:
     krylov_iters: int = 20
 
     def __post_init__(self):
-        for name in ("rtol", "dx_max", "ccd_s", "tau0"):
-            v = getattr(self, name)
-            if not (np.isfinite(v) and v > 0):
-                raise ParameterError(f"BarrierNewton.{name} must be finite and > 0; got {v}")
-        if not (isinstance(self.max_steps, int) and self.max_steps > 0):
-            raise ParameterError(f"BarrierNewton.max_steps must be a positive integer; got "
-                                 f"{self.max_steps!r}")
-        if not 0 < self.ccd_s < 1:
-            raise ParameterError(f"BarrierNewton.ccd_s must lie in (0, 1); got {self.ccd_s}")
+        check_settings(self, dict(rtol="positive", max_steps="positive_count",
+                                  dx_max="positive", ccd_s="unit", tau0="positive",
+                                  armijo="unit", max_halvings="count",
+                                  krylov_below="positive", krylov_rtol="unit",
+                                  krylov_iters="positive_count"))
 
 
 # ------------------------------------------------------------------ jitted kernels

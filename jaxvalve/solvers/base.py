@@ -8,10 +8,12 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import math
 from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ..batching import batch_sum, branches, each_active
 
@@ -108,6 +110,47 @@ class Solution:
         r = RESULTS(int(self.result))
         return (f"{r.name}: {r.message} (steps={int(self.stats.steps)}, "
                 f"relative residual={float(self.stats.residual):.3e})")
+
+
+#: The ranges `check_settings` knows: name -> (test, the range in words).
+_RANGES = {
+    "positive": (lambda v: _real(v) and v > 0, "finite and > 0"),
+    "unit": (lambda v: _real(v) and 0 < v < 1, "in (0, 1)"),
+    "unit_closed": (lambda v: _real(v) and 0 < v <= 1, "in (0, 1]"),
+    "above_one": (lambda v: _real(v) and v > 1, "finite and > 1"),
+    "non_negative": (lambda v: _real(v) and v >= 0, "finite and >= 0"),
+    "count": (lambda v: _integer(v) and v >= 0, "an integer >= 0"),
+    "positive_count": (lambda v: _integer(v) and v > 0, "an integer >= 1"),
+}
+
+
+def _real(v):
+    """A finite real Python or NumPy scalar (not a bool, not an array: no JAX call, so
+    making a solver never starts the backend)."""
+    return (isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool)
+            and math.isfinite(v))
+
+
+def _integer(v):
+    return isinstance(v, (int, np.integer)) and not isinstance(v, bool)
+
+
+def check_settings(solver, ranges: dict, optional: tuple = ()):
+    """Raise `ParameterError` naming the first setting of ``solver`` outside its range.
+
+    ranges: {field name: a key of `_RANGES`}; optional: fields that may also be None.
+    Called by each solver's ``__post_init__``, so a bad setting fails when the solver is
+    made, before anything is traced or compiled."""
+    from ..errors import ParameterError
+    cls = type(solver).__name__
+    for name, kind in ranges.items():
+        v = getattr(solver, name)
+        if v is None and name in optional:
+            continue
+        test, words = _RANGES[kind]
+        if not test(v):
+            extra = " (or None)" if name in optional else ""
+            raise ParameterError(f"{cls}.{name} must be {words}{extra}; got {v!r}")
 
 
 def relative_residual(system, y, args, F=None):

@@ -6,7 +6,7 @@ import dataclasses
 import jax.numpy as jnp
 
 from ..batching import cond_each
-from .base import RESULTS, check_state, relative_residual
+from .base import RESULTS, check_settings, check_state, relative_residual
 
 
 @dataclasses.dataclass(frozen=True)
@@ -33,6 +33,17 @@ class FIRE:
     f_alpha: float = 0.99
     refresh: int = 100
     dt_min: float = 1e-6
+
+    def __post_init__(self):
+        check_settings(self, dict(rtol="positive", max_steps="count", dt_start="positive",
+                                  dt_max="positive", n_min="count", f_inc="above_one",
+                                  f_dec="unit", alpha_start="unit", f_alpha="unit_closed",
+                                  refresh="positive_count", dt_min="positive"))
+        from ..errors import ParameterError
+        if not self.dt_min < self.dt_start <= self.dt_max:
+            raise ParameterError(f"FIRE needs dt_min < dt_start <= dt_max; got dt_min="
+                                 f"{self.dt_min}, dt_start={self.dt_start}, "
+                                 f"dt_max={self.dt_max}")
 
     def _mass(self, system, y, args):
         b = system.bound(y, args)

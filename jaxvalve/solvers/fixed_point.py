@@ -6,7 +6,7 @@ import dataclasses
 import jax.numpy as jnp
 
 from ..batching import cond_each
-from .base import RESULTS, check_state, relative_residual
+from .base import RESULTS, check_settings, check_state, relative_residual
 
 
 @dataclasses.dataclass(frozen=True)
@@ -29,6 +29,16 @@ class FixedPoint:
     delta: float | None = None
     safety: float = 1.0
     refresh: int = 200
+
+    def __post_init__(self):
+        # safety < 2: delta = safety / lambda_max must stay below the stability limit 2 / lambda_max
+        check_settings(self, dict(rtol="positive", step_rtol="unit", max_steps="count",
+                                  delta="positive", safety="positive", refresh="count"),
+                       optional=("rtol", "delta"))
+        if not self.safety < 2:
+            from ..errors import ParameterError
+            raise ParameterError(f"FixedPoint.safety must lie in (0, 2) (the explicit "
+                                 f"iteration is unstable past 2); got {self.safety}")
 
     def _delta_bound(self, system, y, args):
         return self.safety / jnp.max(jnp.where(system.free, system.bound(y, args), 0.0))

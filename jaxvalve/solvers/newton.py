@@ -12,7 +12,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from .base import RESULTS, check_state, relative_residual
+from .base import RESULTS, check_settings, check_state, relative_residual
 from .predictor import BulgePredictor
 
 
@@ -50,6 +50,19 @@ class NewtonKrylov:
     ls_steps: int = 5
     max_fails: int = 12
     warm_start: tuple = (BulgePredictor(),)
+
+    def __post_init__(self):
+        check_settings(self, dict(rtol="positive", max_steps="count", cg_max="positive_count",
+                                  eta_max="unit", eta_min="unit", max_step="positive",
+                                  mu0="positive", ls_steps="count", max_fails="count"))
+        from ..errors import ParameterError
+        if not self.eta_min <= self.eta_max:
+            raise ParameterError(f"NewtonKrylov needs eta_min <= eta_max; got eta_min="
+                                 f"{self.eta_min}, eta_max={self.eta_max}")
+        for w in self.warm_start or ():
+            if not (hasattr(w, "init") and hasattr(w, "step") and hasattr(w, "terminate")):
+                raise ParameterError(f"NewtonKrylov.warm_start must hold solvers (with init, "
+                                     f"step and terminate); got {w!r}")
 
     def init(self, system, y, args):
         F = system.force(y, args)

@@ -20,7 +20,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from .base import RESULTS
+from .base import RESULTS, check_settings
 
 
 @dataclasses.dataclass(frozen=True)
@@ -30,6 +30,10 @@ class BulgePredictor:
     cg_steps: int = 400
     root_steps: int = 20
     max_steps: int = 1
+
+    def __post_init__(self):
+        check_settings(self, dict(cg_steps="positive_count", root_steps="positive_count",
+                                  max_steps="count"))
 
     def init(self, system, y, args):
         return dict(n=jnp.asarray(0), evals=jnp.asarray(0))
