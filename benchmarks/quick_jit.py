@@ -9,7 +9,7 @@ lowered module and run ``--runs`` times on the closed state:
 
 * metrics+partials: `Evaluator._direct_jit`, the smooth metrics, the objective and its
   partial derivatives (once per forward evaluation);
-* residual_vjp: `tangent.residual_vjp`, the adjoint's K^T product (~50 per gradient);
+* residual_vjp: `adjoint.residual_vjp`, the adjoint's K^T product (~50 per gradient);
 * blocks: `tangent._blocks`, the assembled stiffness's element blocks (once per gradient);
 * design_pullback: the template's part of the gradient (once per gradient); it gains
   nothing, so the optimiser compiles it with the plain `jax.jit`.
@@ -39,7 +39,7 @@ jax.config.update("jax_enable_compilation_cache", False)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from jaxvalve import Scene, tangent  # noqa: E402
+from jaxvalve import Scene, adjoint, tangent  # noqa: E402
 from jaxvalve.quick_jit import QUICK_CPU_OPTIONS  # noqa: E402
 from optimize import Objective  # noqa: E402
 from optimize.evaluate import Evaluator  # noqa: E402
@@ -90,7 +90,7 @@ def main(argv=None):
         "metrics+partials": (ev._direct_jit._plain,
                              (jnp.asarray(rab), {"closed": sol.x}, e.states, e.plans,
                               jnp.asarray(ev.area_ref))),
-        "residual_vjp": (tangent.residual_vjp._plain, (sol.x, prob, params, sol.nbrs, mu)),
+        "residual_vjp": (adjoint.residual_vjp._plain, (sol.x, prob, params, sol.nbrs, mu)),
         "blocks": (tangent._blocks._plain, (sol.x, prob, params, sol.nbrs, hn, ht)),
         "design_pullback": (ev._design_pullback,
                             (jnp.asarray(rab), sol.x, params.ref, mu)),

@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import assembly
+from . import adjoint, assembly
 from .contact.soft_pairs import (SoftPairs, build_soft_pairs, default_soft_capacity,
                                  stale_soft_pairs)
 from .contact.soft_pairs import refresh as refresh_soft
@@ -25,7 +25,6 @@ from .mesh import edge_lengths_np
 from .problem import Params, Problem, validate_params
 from .solvers import RESULTS, EquilibriumSystem, FixedPoint, NewtonKrylov, Solution, Stats, iterate
 from .solvers.base import escape_distance, relative_residual
-from .solvers.newton import _apply_blocks, _precond
 from . import contact as _contact
 
 DEFAULT_SKIN = 1.0  # mm: pair lists are rebuilt once a node has moved skin / 2
@@ -173,44 +172,6 @@ def _run(solver, problem, params, x0, nbrs, skin):
     return y, result, stats, args
 
 
-#: The JAX adjoint's GMRES: its target (relative residual) and iteration cap, and the
-#: relative residual above which the gradient is refused (`ConvergenceError`).
-ADJOINT_TOL, ADJOINT_MAXITER, ADJOINT_ACCEPT = 1e-12, 2000, 1e-8
-
-
-def _adjoint_solve(problem, params, x, nbrs, delta, g):
-    """mu solving K^T mu = g on free dofs (K = -dR/dx); returns (mu, vjp_fn of R, relative
-    residual ||K^T mu - g|| / ||g|| of the GMRES solution)."""
-    free = problem.free[:, None]
-
-    def R(xx, pp):
-        ref = assembly.prepare(problem, pp)
-        return assembly.residual(xx, problem, pp, ref, nbrs, delta)
-
-    _, vjp = jax.vjp(R, x, params)
-    ref = assembly.prepare(problem, params)
-    V, w = _precond(assembly.block_diagonal(x, problem, params, ref), problem.free)
-    KT = lambda v: -vjp(v * free)[0] * free
-    M = lambda r: _apply_blocks(V, 1.0 / w, r) * free
-    gf = g * free
-    ng = jnp.linalg.norm(gf)
-    mu, _ = jax.scipy.sparse.linalg.gmres(KT, gf, tol=0.0, atol=ADJOINT_TOL * ng, restart=60,
-                                          maxiter=ADJOINT_MAXITER // 60 + 1, M=M,
-                                          solve_method="batched")
-    res = jnp.linalg.norm(KT(mu) - gf) / jnp.where(ng > 0, ng, 1.0)
-    return mu, vjp, res
-
-
-def _raise_adjoint(res):
-    res = float(res)
-    if not res <= ADJOINT_ACCEPT:        # NaN fails too
-        raise ConvergenceError(
-            f"the adjoint solve of the equilibrium gradient did not converge: relative "
-            f"residual {res:.3e} after at most {ADJOINT_MAXITER} GMRES iterations (it must "
-            f"be <= {ADJOINT_ACCEPT:g}); use the LU-preconditioned adjoint "
-            f"(jaxvalve.tangent.adjoint_solve, the optimiser's adjoint='lu') on valves")
-
-
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0, 5))
 def _equilibrium(solver, problem, params, x0, nbrs, skin):
     y, result, stats, args = _run(solver, problem, params, x0, nbrs, skin)
@@ -229,21 +190,9 @@ def _zeros_like(t):
                    else jnp.zeros_like(a)), t)
 
 
-def _adjoint_cotangents(problem, params, y, nb, delta, g):
-    """(d/dparams, d/dx0) of <g, x*> at the equilibrium y: one adjoint solve."""
-    mu, vjp, res = _adjoint_solve(problem, params, y, nb, delta, g)
-    # a gradient from an unconverged adjoint is wrong: raise (inside jit, via a host
-    # callback) and poison it with NaN, never return it silently
-    jax.debug.callback(_raise_adjoint, res)
-    mu = jnp.where(res <= ADJOINT_ACCEPT, mu, jnp.nan)
-    gx, gp = vjp(mu)
-    # x*[fixed] = x0[fixed] directly, and R depends on x0[fixed] through x*
-    return gp, (g + gx) * problem.fixed[:, None]
-
-
 def _eq_bwd(solver, skin, res, cts):
     problem, params, y, nb, delta = res
-    gp, gx0 = _adjoint_cotangents(problem, params, y, nb, delta, cts[0])
+    gp, gx0 = adjoint.cotangents(problem, params, y, nb, delta, cts[0])
     return (_zeros_like(problem), gp, gx0, _zeros_like(nb))
 
 
@@ -342,7 +291,7 @@ def _implicit_fwd(problem, params, x0, x, nbrs, delta):
 
 def _implicit_bwd(res, g):
     problem, params, y, nb, delta = res
-    gp, gx0 = _adjoint_cotangents(problem, params, y, nb, delta, g)
+    gp, gx0 = adjoint.cotangents(problem, params, y, nb, delta, g)
     return (_zeros_like(problem), gp, gx0, jnp.zeros_like(y), _zeros_like(nb),
             jnp.zeros_like(delta))
 

@@ -1,5 +1,5 @@
-"""An assembled sparse approximation of the valve's stiffness K = -dR/dx, and the adjoint
-solve it preconditions.
+"""An assembled sparse approximation of the valve's stiffness K = -dR/dx (the
+preconditioner of the LU adjoint, `jaxvalve.adjoint.solve_lu`).
 
 `assemble(problem, params, x, nbrs)` sums, as a scipy CSC matrix over the free dofs:
 * the 9x9 Hessians of each triangle's strain energy (`assembly._element_hessians`);
@@ -10,46 +10,22 @@ solve it preconditions.
   triangle, g the gradient of the distance), leaving out the distance's curvature.
 It is close to K, not equal: it serves as a preconditioner, and every solve here runs GMRES on
 the exact operator (Jacobian-vector products of the residual by autodiff).
-
-`adjoint_solve(problem, params, x, nbrs, g)` solves K^T mu = g on the free dofs with GMRES
-on exact vector-Jacobian products, preconditioned by a sparse LU of the assembled K^T
-(scipy `splu`), on the host.  It is the fast alternative to the block-Jacobi GMRES inside
-`equilibrium.solve`'s adjoint (measured on the benchmark valve at h = 1.5 mm:
-docs/gradients-and-optimisation.md, "Why not block-Jacobi").  Returns mu (N, 3) and an
-`AdjointReport` (iterations, relative residual, seconds); it raises `ConvergenceError` when GMRES misses its tolerance.
 """
 from __future__ import annotations
-
-import dataclasses
-import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 from . import assembly
 from .bending import bending_energy, plate_modulus
 from .contact.geometry import closest_point_soa, point_triangle_distance_soa
 from .contact.smooth import _columns
-from .contact.neighbours import whole_lists
 from .contact.soft_pairs import SoftPairs
-from .errors import ConvergenceError
 from .quick_jit import quick_jit
 
-__all__ = ["assemble", "adjoint_solve", "residual_vjp", "AdjointReport"]
-
-
-@dataclasses.dataclass(frozen=True)
-class AdjointReport:
-    """iterations: GMRES iterations; residual: ||K^T mu - g|| / ||g||; seconds: wall time
-    (assembly, factorisation and GMRES); nnz: nonzeros of the assembled matrix."""
-
-    iterations: int
-    residual: float
-    seconds: float
-    nnz: int
+__all__ = ["assemble", "pressure_blocks", "hinge_hessians", "local_hinges"]
 
 
 def local_hinges(problem):
@@ -160,52 +136,3 @@ def assemble(problem, params, x, nbrs=None):
     n = 3 * int(free.sum())
     return sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
                          shape=(n, n))
-
-
-@quick_jit
-def residual_vjp(x, problem, params, nbrs, v):
-    """(v . dR/dx (N, 3), v . dR/dparams (a `Params`)) for the residual R(x, params), v
-    (N, 3).  One compiled program serves the adjoint's K^T products (`adjoint_solve`) and
-    the pullback of an adjoint to the parameters (`optimize.Evaluator`)."""
-    def R(z, p):
-        return assembly.residual(z, problem, p, assembly.prepare(problem, p), nbrs)
-    with whole_lists():
-        return jax.vjp(R, x, params)[1](v)
-
-
-def adjoint_solve(problem, params, x, nbrs, g, *, rtol=1e-10, maxiter=300):
-    """mu (N, 3) with K^T mu = g on the free dofs (K = -dR/dx at the equilibrium x); mu is
-    zero on fixed nodes.  GMRES (scipy) on exact VJPs, preconditioned by the sparse LU of
-    the assembled approximation of K^T.  Returns (mu, `AdjointReport`)."""
-    t0 = time.perf_counter()
-    x = jnp.asarray(x)
-    free = np.asarray(problem.free)
-    fdof = np.repeat(free, 3)
-    N = problem.n_nodes
-    K = assemble(problem, params, x, nbrs)
-    lu = spla.splu(K.T.tocsc(), permc_spec="MMD_AT_PLUS_A")
-    b = np.asarray(g, float).reshape(-1)[fdof]
-    nb = float(np.linalg.norm(b))
-    if nb == 0.0:
-        return np.zeros((N, 3)), AdjointReport(0, 0.0, time.perf_counter() - t0, K.nnz)
-
-    def KT(vf):
-        v = np.zeros(3 * N)
-        v[fdof] = vf
-        gx, _ = residual_vjp(x, problem, params, nbrs, jnp.asarray(v.reshape(N, 3)))
-        return -np.asarray(gx).reshape(-1)[fdof]
-
-    A = spla.LinearOperator((b.size, b.size), matvec=KT, dtype=float)
-    M = spla.LinearOperator((b.size, b.size), matvec=lu.solve, dtype=float)
-    count = [0]
-    mu_f, _ = spla.gmres(A, b, M=M, rtol=rtol, atol=0.0, restart=60, maxiter=maxiter // 60 + 1,
-                         callback=lambda r: count.__setitem__(0, count[0] + 1),
-                         callback_type="pr_norm")
-    res = float(np.linalg.norm(KT(mu_f) - b) / nb)
-    rep = AdjointReport(count[0], res, time.perf_counter() - t0, int(K.nnz))
-    if not np.isfinite(res) or res > 100 * rtol:
-        raise ConvergenceError(f"adjoint solve did not converge: relative residual {res:.3e} "
-                               f"after {count[0]} GMRES iterations (tolerance {rtol:g})")
-    mu = np.zeros(3 * N)
-    mu[fdof] = mu_f
-    return mu.reshape(N, 3), rep

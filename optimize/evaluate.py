@@ -10,8 +10,8 @@
   with its partial derivatives at fixed states (one compiled program, `_terms`).
 * ``gradient(ev)``: the objective's value and its gradient with respect to (r, a, b).
   The equilibria enter through the implicit adjoint: one solve K^T mu = df/dx per
-  closure (`tangent.adjoint_solve`; `adjoint="jax"` uses `equilibrium.implicit_state`),
-  pulled back to (r, a, b) by `pullback` (`tangent.residual_vjp`).  It never re-runs or
+  closure (`jaxvalve.adjoint.solve_lu`; `adjoint="jax"` uses `equilibrium.implicit_state`),
+  pulled back to (r, a, b) by `pullback` (`jaxvalve.adjoint.residual_vjp`).  It never re-runs or
   unrolls the solver.
 
 Changing theta changes only traced values: nothing recompiles, unless the mapped mesh
@@ -348,11 +348,11 @@ class Evaluator:
         b))> at a closed state x of template (r, a, b) (its sutured nodes already where the
         template puts them); with ``wrt_params`` also its derivative with respect to the
         `Params` (read its material moduli, thickness, pressure).  The residual's VJP is
-        `tangent.residual_vjp`, with the arguments of the adjoint's K^T products, so the
+        `adjoint.residual_vjp`, with the arguments of the adjoint's K^T products, so the
         program the adjoint solve compiled serves; only the template's part (reference
         nodes and sutured positions) compiles here.  params: the load's `Params` at
         (r, a, b) when the caller has them (the adjoint's), else built here."""
-        from jaxvalve.tangent import residual_vjp
+        from jaxvalve.adjoint import residual_vjp
 
         if params is None:
             params = self.base[load].replace(ref=self._ref_jit(self.theta(rab)))
@@ -372,9 +372,9 @@ class Evaluator:
         """Derivatives of the smooth metrics at a converged evaluation: {metric: {param:
         d metric / d param}} for every metric of the closed loads, with param r, a, b (mm)
         and the material's moduli (e.g. E, nu for StVK; MPa^-1 for a modulus).  One LU
-        adjoint solve per metric (`jaxvalve.tangent.adjoint_solve`); raises
+        adjoint solve per metric (`jaxvalve.adjoint.solve_lu`); raises
         `ConvergenceError` when ``ev`` did not converge or an adjoint solve failed."""
-        from jaxvalve.tangent import adjoint_solve
+        from jaxvalve.adjoint import solve_lu
 
         if not ev.converged:
             raise ConvergenceError(f"no sensitivities at (r, a, b) = {tuple(ev.rab)}: "
@@ -390,7 +390,7 @@ class Evaluator:
             J_rab, J_x = self._metric_jac_jit(rab, load, sol.x, ev.plans[load])
             params = self.base[load].replace(ref=self._ref_jit(th))
             for k, name in enumerate(names):
-                mu, _ = adjoint_solve(self.valve.problem, params, sol.x, sol.nbrs, J_x[k])
+                mu, _ = solve_lu(self.valve.problem, params, sol.x, sol.nbrs, J_x[k])
                 mu = jnp.asarray(mu)
                 g_rab, gp = self.pullback(rab, load, sol.x, sol.nbrs, mu, True, params)
                 g = np.asarray(J_rab[k]) + np.asarray(g_rab)
@@ -410,7 +410,7 @@ class Evaluator:
         (block-Jacobi GMRES inside JAX).  info: {'adjoint': [AdjointReport per closure]}.
         Raises `ConvergenceError` when ``ev`` did not converge (no adjoint of a
         non-equilibrium) or an adjoint solve missed its tolerance."""
-        from jaxvalve.tangent import adjoint_solve
+        from jaxvalve.adjoint import solve_lu
 
         if not ev.converged:
             raise ConvergenceError(f"no gradient at (r, a, b) = {tuple(ev.rab)}: {ev.reason}")
@@ -430,7 +430,7 @@ class Evaluator:
         for load in self.loads:
             x0, sol = ev.states[load]
             params = self.base[load].replace(ref=self._ref_jit(th))
-            mu, rep = adjoint_solve(self.valve.problem, params, sol.x, sol.nbrs, gx[load])
+            mu, rep = solve_lu(self.valve.problem, params, sol.x, sol.nbrs, gx[load])
             reports.append(rep)
             g = g + np.asarray(self.pullback(rab, load, sol.x, sol.nbrs, jnp.asarray(mu),
                                              params=params))
