@@ -3,6 +3,26 @@ quicker-compiling CPU emitters, and no persistent XLA compilation cache: every w
 the executables it compiled itself."""
 import os
 
+
+def _pin_worker():
+    """Pin each xdist worker to one CPU of its own (gw0 to the first allowed CPU, gw1 to
+    the next, ...), before JAX, NumPy or SciPy start their thread pools, which size
+    themselves by the CPUs a process may use.  With two workers on two cores each process
+    then runs XLA's intra-op work, LLVM's compilation and OpenBLAS on one core, in one
+    thread each, instead of four such pools contending for two cores: the CI's
+    intermittent wrong results (docs/known-limits.md) were only ever seen with several
+    threads per process.  A single-process run (no xdist) is left as it is."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "")
+    if not worker.startswith("gw") or not hasattr(os, "sched_setaffinity"):
+        return
+    cpus = sorted(os.sched_getaffinity(0))
+    n = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0") or 0)
+    if len(cpus) > 1 and 0 < n <= len(cpus):
+        os.sched_setaffinity(0, {cpus[int(worker[2:]) % len(cpus)]})
+
+
+_pin_worker()
+
 #: The suite is compile-bound: most tests compile a program and run it for little time.
 #: XLA's older CPU fusion emitters (what `jaxvalve.quick_jit` picks for short-running
 #: programs) compile faster; the newer default ones make faster loops.  Measured on one
