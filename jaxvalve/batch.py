@@ -500,12 +500,11 @@ def simulate_batch(scene: Scene | None = None, materials=None, *, valve=None,
         for p, st in zip((scene.he_pressure, scene.pressure), stages):
             x = np.asarray(st["x"][i])
             ok = bool(np.all(np.isfinite(x)))
-            code = int(st["result"][i]) if ok else int(RESULTS.nonfinite)
-            if code == RESULTS.successful:     # crossed leaflets, folded triangles
-                bad = V.state_failure(valve, x)
-                code = code if bad is None else int(bad)
-            solves.append(MemberSolve(pressure=float(p), result=RESULTS(code).name,
-                                      converged=code == RESULTS.successful,
+            name = RESULTS(int(st["result"][i])).name if ok else RESULTS.nonfinite.name
+            if name == RESULTS.successful.name:     # crossed leaflets, folded triangles
+                name = V.state_failure(valve, x) or name
+            solves.append(MemberSolve(pressure=float(p), result=name,
+                                      converged=name == RESULTS.successful.name,
                                       steps=int(st["steps"][i]),
                                       residual=float(st["residual"][i])))
             xs.append(x)

@@ -120,16 +120,16 @@ def ramp(solve: Callable, x0, p_target: float, p_start: float = 0.0,
     p = p_target
     for _ in range(settings.max_solves):
         sol = solve(p, x_ok)
-        code = RESULTS(int(sol.result))
+        status = sol.status
         n = int(sol.stats.steps)
         steps += n
-        history.append((p, code.name, n, float(sol.stats.residual)))
+        history.append((p, status, n, float(sol.stats.residual)))
         if sol.converged:
             p_ok, x_ok, sol_ok = p, sol.x, sol
             if p >= p_target:
                 return RampResult("converged", p, p_bad, x_ok, sol_ok, None, tuple(history),
                                   steps)
-        elif code == RESULTS.escaped:
+        elif status == RESULTS.escaped.name:
             p_bad = p
             if p_bad - p_ok <= settings.rtol * p_bad:
                 if sol_ok is None:           # runaway down to the start: no equilibrium
@@ -137,7 +137,7 @@ def ramp(solve: Callable, x0, p_target: float, p_start: float = 0.0,
                 return RampResult("limit_point", p_ok, p_bad, x_ok, sol_ok, sol,
                                   tuple(history), steps)
         else:
-            return RampResult(code.name, p_ok, p_bad, x_ok, sol_ok, sol, tuple(history), steps)
+            return RampResult(status, p_ok, p_bad, x_ok, sol_ok, sol, tuple(history), steps)
         p = p_target if p_bad is None else 0.5 * (p_ok + p_bad)
     # every solve since the last equilibrium ran away (p_bad is set: a converged solve
     # at the target returns above)

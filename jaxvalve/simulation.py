@@ -212,7 +212,7 @@ def simulate(scene: Scene | None = None, *, progress: Callable[[str], None] | No
     with throw=False the result is returned and ``result.converged`` is False.  A state
     the solver accepts is checked independently (`jaxvalve.valve.state_failure`): crossed
     leaflets or a collapsed or folded triangle make it not converged
-    (``leaflets_cross``, ``inverted_triangles``).
+    (``leaflets_cross``, ``inverted_triangles``: `jaxvalve.valve.STATE_FAILURES`).
     valve: a prebuilt `Valve` for this scene's root and template (skips the setup).
     """
     scene = Scene() if scene is None else scene

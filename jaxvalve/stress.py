@@ -229,7 +229,7 @@ def _metric_values(m):
 def _judge(rec: RunRecord, valve, sol, scene: Scene, x64, note: str = ""):
     """Fill the checks of ``rec`` from the solution at its load and classify it."""
     from .simulation import measure
-    rec.result = RESULTS(int(sol.result)).name
+    rec.result = sol.status
     rec.residual = float(sol.stats.residual)
     rec.steps += int(sol.stats.steps)
     finite = bool(np.all(np.isfinite(x64)))
@@ -400,7 +400,7 @@ def run_group(valve, *, template: str, mesh: str, model: str, precision: str,
                 out.append(_exception(rec, e))
                 _emit(on_record, rec)
             continue
-        stage1 = f"{RESULTS(int(sol1.result)).name} {float(sol1.stats.residual):.1e}"
+        stage1 = f"{sol1.status} {float(sol1.stats.residual):.1e}"
         w1 = time.perf_counter() - t0
         for rec in pending:
             t1 = time.perf_counter()
@@ -457,7 +457,7 @@ def run_penetration(valve, *, template: str, model: str = "stvk", precision: str
         if x_closed is None:
             s1, x_he, _ = _solve_stage(valve, scene, HE_PRESSURE, valve.x_start)
             s2, x_closed, _ = _solve_stage(valve, scene, P, x_he)
-            rec.stage1 = (f"{RESULTS(int(s2.result)).name} {float(s2.stats.residual):.1e}")
+            rec.stage1 = f"{s2.status} {float(s2.stats.residual):.1e}"
         x0 = penetrated_start(valve, x_closed, depth)
         n0 = len(V.leaflet_crossings(valve, x0))
         rec.start = f"penetrated ({n0} crossing pairs)"

@@ -20,10 +20,46 @@ from .errors import ConvergenceError, ParameterError
 from .leaflet_mesh import LeafletMesh
 from .placement import place_leaflet
 from .problem import Params, Problem, make_problem, mmhg
-from .solvers import FIRE, RESULTS
+import jax
+
+from .solvers import FIRE, RESULTS, Solution
 
 __all__ = ["Valve", "build_valve", "settle", "close", "valve_contact", "state_failure",
            "leaflet_crossings"]
+
+
+#: The valve's own outcomes (`state_failure`): the solver met its tolerance, but the state
+#: is not a valid closed valve.  Names and messages, apart from the solver's `RESULTS`.
+STATE_FAILURES = {
+    "leaflets_cross": ("the force residual met the tolerance but leaflets cross one another "
+                       "(exact triangle-triangle test)"),
+    "inverted_triangles": ("the force residual met the tolerance but a triangle is folded "
+                           "over its neighbour or collapsed (jaxvalve.checks.triangle_checks)"),
+    "nonfinite": RESULTS.nonfinite.message,
+}
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class ValveSolution(Solution):
+    """A `Solution` with the valve's state check (`close(..., check_state=True)`).
+
+    state: None when the state passed (or was not checked), else a key of
+    `STATE_FAILURES`.  ``result`` stays the solver's own code; ``converged`` is False and
+    ``status`` names the failed check when ``state`` is set."""
+
+    state: str | None = dataclasses.field(default=None, metadata=dict(static=True))
+
+    @property
+    def converged(self):
+        return self.state is None and super().converged
+
+    @property
+    def status(self) -> str:
+        return self.state if self.state is not None else super().status
+
+    def _message(self) -> str:
+        return STATE_FAILURES[self.state] if self.state is not None else super()._message()
 
 
 def valve_contact():
@@ -143,8 +179,8 @@ def close(valve: Valve, material, pressure_mmhg=80.0, *, solver=None, contact=No
 
     check_state: test a converged state with `leaflet_crossings` and
     `checks.triangle_checks` (host side, ~10 ms at h = 2 mm); if leaflets cross, the
-    result becomes `RESULTS.leaflets_cross`, and if a triangle is folded over its
-    neighbour or collapsed, `RESULTS.inverted_triangles` (not converged; raised as
+    returned `ValveSolution` has state ``"leaflets_cross"``, and if a triangle is folded
+    over its neighbour or collapsed, ``"inverted_triangles"`` (not converged; raised as
     `ConvergenceError` when ``throw``).  The contact law acts between nodes and the other
     leaflets' faces within its pair-list range, so it can neither see two faces that
     graze through each other between nodes (coarse meshes, at the three-leaflet
@@ -170,30 +206,40 @@ def close(valve: Valve, material, pressure_mmhg=80.0, *, solver=None, contact=No
     else:
         sol = equilibrium.solve(valve.problem, params, jnp.asarray(x0), solver,
                                 throw=throw and not check_state, nbrs=nbrs, skin=valve.skin)
-    if check_state and sol.converged:
-        code = state_failure(valve, sol.x)
-        if code is not None:
-            sol = dataclasses.replace(sol, result=jnp.asarray(code,
-                                                              jnp.asarray(sol.result).dtype))
+    sol = checked(valve, sol) if check_state else ValveSolution(
+        x=sol.x, result=sol.result, stats=sol.stats, nbrs=sol.nbrs)
     if throw and check_state and not sol.converged:
         raise ConvergenceError(f"valve closure at {pressure_mmhg:g} mmHg did not converge: "
                                f"{sol.describe()}", sol)
     return sol
 
 
+def checked(valve: Valve, sol: Solution, ref=None) -> ValveSolution:
+    """``sol`` as a `ValveSolution` carrying the state check (`state_failure`) of a state
+    the solver accepted.  ref: the leaflets' reference (N, 2|3) mm where it is not
+    ``valve.ref`` (a mapped template, `optimize.Evaluator`).  The one check that
+    `close`, `simulate`, `simulate_batch`, the stress suite and the optimiser apply."""
+    state = None
+    if sol.converged:
+        v = valve if ref is None else dataclasses.replace(valve, ref=np.asarray(ref))
+        state = state_failure(v, sol.x)
+    return ValveSolution(x=sol.x, result=sol.result, stats=sol.stats, nbrs=sol.nbrs,
+                         state=state)
+
+
 def state_failure(valve: Valve, x):
     """Why the state x (N, 3) mm, which a solver calls converged, is still not a valid
-    closed valve: `RESULTS.leaflets_cross` (an exact triangle-triangle test finds leaflets
-    crossing), `RESULTS.inverted_triangles` (a triangle collapsed or turned over,
-    `jaxvalve.checks`), `RESULTS.nonfinite`, or None when it passes."""
+    closed valve, as a key of `STATE_FAILURES`: "leaflets_cross" (an exact triangle-triangle
+    test finds leaflets crossing), "inverted_triangles" (a triangle collapsed or turned
+    over, `jaxvalve.checks`), "nonfinite", or None when it passes."""
     from .checks import triangle_checks
     x = np.asarray(x, np.float64)
     if not np.all(np.isfinite(x)):
-        return RESULTS.nonfinite
+        return "nonfinite"
     if len(leaflet_crossings(valve, x)):
-        return RESULTS.leaflets_cross
+        return "leaflets_cross"
     if not triangle_checks(valve.ref, valve.triangles, x).ok:
-        return RESULTS.inverted_triangles
+        return "inverted_triangles"
     return None
 
 

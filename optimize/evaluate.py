@@ -35,7 +35,6 @@ from jaxvalve.design import ValveDesign
 from jaxvalve.errors import ConvergenceError, ParameterError
 from jaxvalve.leaflet_mesh import mesh_leaflet
 from jaxvalve.quick_jit import quick_jit
-from jaxvalve.solvers import RESULTS
 from jaxvalve.template import Template
 from jaxvalve.template_map import template_map
 
@@ -223,10 +222,12 @@ class Evaluator:
             t0 = time.perf_counter()
             sol = equilibrium.solve(self.valve.problem, params, x0, self.solver, throw=False,
                                     skin=self.valve.skin, whole_lists=self.whole_lists)
+            # the valve's state check, as `simulate` applies it (crossed leaflets, folds)
+            sol = V.checked(self.valve, sol, ref=params.ref)
             x = np.asarray(sol.x)
             ok = sol.converged and bool(np.all(np.isfinite(x)))
             solves.append(dict(load=load, pressure=self.pressure[load], converged=ok,
-                               result=RESULTS(int(sol.result)).name,
+                               result=sol.status,
                                steps=int(sol.stats.steps),
                                residual=float(sol.stats.residual),
                                seconds=time.perf_counter() - t0))
@@ -287,6 +288,7 @@ class Evaluator:
                 sol = equilibrium.solve(self.valve.problem, params,
                                         self._x_fixed_jit(th, jnp.asarray(seed)),
                                         self.solver, throw=False, skin=self.valve.skin)
+                sol = V.checked(self.valve, sol, ref=params.ref)
                 x = np.asarray(sol.x)
                 wall = time.perf_counter() - t0
             ok = sol.converged and bool(np.all(np.isfinite(x)))
@@ -294,7 +296,7 @@ class Evaluator:
                 raise ConvergenceError(f"closure at {self.pressure[load]:g} mmHg did not "
                                        f"converge: {sol.describe()}", sol)
             xs[load] = x
-            reports[load] = SolveReport(float(self.pressure[load]), RESULTS(int(sol.result)).name,
+            reports[load] = SolveReport(float(self.pressure[load]), sol.status,
                                         ok, int(sol.stats.steps), float(sol.stats.residual),
                                         wall, min(ct.seconds, wall))
         t0 = time.perf_counter()

@@ -58,7 +58,7 @@ def test_state_check_rejects_crossed_leaflets_and_folded_triangles(closed):
     from jaxvalve.stress import penetrated_start
     v = closed.valve
     assert V.state_failure(v, closed.x) is None and V.state_failure(v, closed.x_he) is None
-    assert V.state_failure(v, penetrated_start(v, closed.x, 1.5)) == RESULTS.leaflets_cross
+    assert V.state_failure(v, penetrated_start(v, closed.x, 1.5)) == "leaflets_cross"
     x = np.array(closed.x)
     sl = v.leaflet_slice(0)
     free = np.flatnonzero(~np.asarray(v.problem.fixed)[sl])
@@ -66,10 +66,26 @@ def test_state_check_rejects_crossed_leaflets_and_folded_triangles(closed):
     nb = np.unique(v.triangles[np.any(v.triangles == i, axis=1)])
     far = nb[np.argmax(np.linalg.norm(x[nb] - x[i], axis=1))]
     x[i] = x[far] + 2.0 * (x[far] - x[i])               # through its star
-    assert V.state_failure(v, x) in (RESULTS.inverted_triangles, RESULTS.leaflets_cross)
+    assert V.state_failure(v, x) in ("inverted_triangles", "leaflets_cross")
     x[i, 0] = np.nan
-    assert V.state_failure(v, x) == RESULTS.nonfinite
+    assert V.state_failure(v, x) == RESULTS.nonfinite.name
     assert all(r.result == "successful" for r in closed.solves)
+
+
+def test_a_failed_state_check_is_the_valves_outcome_not_the_solvers():
+    """`ValveSolution`: the solver's code stays its own (the solver did converge), while
+    ``converged`` is False and ``status`` and ``describe()`` name the valve's check; the
+    check's names are not solver `RESULTS`."""
+    from jaxvalve.solvers import RESULTS, Stats
+    stats = Stats(steps=3, force_evals=3, hvps=0, residual=jnp.asarray(1e-7))
+    ok = V.ValveSolution(x=jnp.zeros((1, 3)), result=jnp.asarray(0), stats=stats)
+    assert ok.converged and ok.status == "successful"
+    bad = V.ValveSolution(x=ok.x, result=ok.result, stats=stats, state="leaflets_cross")
+    assert int(bad.result) == RESULTS.successful and not bad.converged
+    assert bad.status == "leaflets_cross" and "leaflets cross" in bad.describe()
+    assert not (set(V.STATE_FAILURES) - {"nonfinite"}) & set(RESULTS.__members__)
+    leaves, tree = jax.tree_util.tree_flatten(bad)         # a pytree: state is static
+    assert jax.tree_util.tree_unflatten(tree, leaves).state == "leaflets_cross"
 
 
 def test_closed_valve_is_threefold_symmetric(closed):

@@ -27,8 +27,7 @@ class RESULTS(enum.IntEnum):
     stretch_limit = 3
     neighbour_overflow = 4
     stagnation = 5
-    leaflets_cross = 6     # set by `jaxvalve.valve.close(..., check_state=True)`
-    inverted_triangles = 7  # set by `jaxvalve.valve.close(..., check_state=True)`
+    # 6 and 7 were valve state checks; they are `jaxvalve.valve.STATE_FAILURES` now
     escaped = 8            # a node moved farther than the structure's size from the start
 
     @property
@@ -43,11 +42,6 @@ _MESSAGES = {
     RESULTS.stretch_limit: "a triangle passed the material's stretch limit (Gent) or collapsed",
     RESULTS.neighbour_overflow: "the contact pair list overflowed its capacity",
     RESULTS.stagnation: "the solver stagnated: no step reduced the residual",
-    RESULTS.leaflets_cross: ("the force residual met the tolerance but leaflets cross one "
-                             "another (exact triangle-triangle test)"),
-    RESULTS.inverted_triangles: ("the force residual met the tolerance but a triangle is "
-                                 "folded over its neighbour or collapsed "
-                                 "(jaxvalve.checks.triangle_checks)"),
     RESULTS.escaped: ("a node moved farther from its start than the structure's diameter: "
                       "no equilibrium near the start (a load past the structure's limit "
                       "point, or an unrestrained rigid-body drift)"),
@@ -106,9 +100,16 @@ class Solution:
     def converged(self):
         return bool(int(self.result) == RESULTS.successful)
 
+    @property
+    def status(self) -> str:
+        """The name of the outcome: the `RESULTS` name of ``result``."""
+        return RESULTS(int(self.result)).name
+
+    def _message(self) -> str:
+        return RESULTS(int(self.result)).message
+
     def describe(self):
-        r = RESULTS(int(self.result))
-        return (f"{r.name}: {r.message} (steps={int(self.stats.steps)}, "
+        return (f"{self.status}: {self._message()} (steps={int(self.stats.steps)}, "
                 f"relative residual={float(self.stats.residual):.3e})")
 
 
