@@ -243,13 +243,38 @@ def state_failure(valve: Valve, x):
     return None
 
 
+def commissure_groups(valve: Valve, x) -> np.ndarray:
+    """(N,) for each node of the state x (N, 3) mm, the commissure group it is sewn into,
+    or -1: fixed nodes of different leaflets at the same point (to 1e-9 of the root's size)
+    are the leaflets' shared corners.  Read from x itself, not from the root's commissure
+    points, because a design map (`optimize.Evaluator`) moves the corners with the
+    template: 1.6 mm per mm of r on the benchmark root."""
+    x = np.asarray(x, float)
+    fixed = np.flatnonzero(np.asarray(valve.problem.fixed))
+    body = np.asarray(valve.body)
+    tol = 1e-9 * max(1.0, float(np.max(np.abs(x[fixed]))))
+    group = np.full(x.shape[0], -1)
+    p = x[fixed]
+    d = np.linalg.norm(p[:, None] - p[None], axis=-1)
+    other = body[fixed][:, None] != body[fixed][None]
+    shared = np.any((d <= tol) & other, axis=1)
+    k = 0
+    for i in np.flatnonzero(shared):
+        if group[fixed[i]] >= 0:
+            continue
+        same = fixed[(d[i] <= tol)]
+        group[same] = k
+        k += 1
+    return group
+
+
 def leaflet_crossings(valve: Valve, x) -> np.ndarray:
     """Pairs (P, 2) of triangles of different leaflets that intersect in ``x`` (N, 3),
     by an exact triangle-triangle test that shares no code with the contact law.
 
     Neighbouring leaflets are sewn to the same commissure point, so triangles that hold a
     node at one commissure touch there by construction: a pair in which both triangles
-    hold a node at the same commissure is not counted."""
+    hold a node of the same commissure group (`commissure_groups`) is not counted."""
     from .intersect import leaflets_intersect
 
     x = np.asarray(x, float)
@@ -257,9 +282,10 @@ def leaflet_crossings(valve: Valve, x) -> np.ndarray:
     pairs = leaflets_intersect(x, tri, valve.body)
     if len(pairs) == 0:
         return pairs
-    com = np.asarray(valve.root.commissures, float)
-    # (M, 3): index of the commissure each triangle touches, or -1
-    d = np.linalg.norm(x[tri][:, :, None, :] - com[None, None], axis=-1)  # (M, 3, 3)
-    at = np.where(np.any(d < 1e-9, axis=1), np.arange(3)[None], -1)     # (M, 3 commissures)
-    shared = np.any((at[pairs[:, 0]] >= 0) & (at[pairs[:, 0]] == at[pairs[:, 1]]), axis=1)
+    g = commissure_groups(valve, x)[tri]                                  # (M, 3)
+    n = int(g.max()) + 1
+    if n == 0:
+        return pairs
+    at = np.any(g[:, :, None] == np.arange(n)[None, None], axis=1)      # (M, groups)
+    shared = np.any(at[pairs[:, 0]] & at[pairs[:, 1]], axis=1)
     return pairs[~shared]

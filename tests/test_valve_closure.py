@@ -141,3 +141,20 @@ def test_rigid_motion_of_the_root_moves_the_valve_rigidly(closed):
     a, b = closed.summary(), moved.summary()
     for k in a:
         assert b[k] == pytest.approx(a[k], abs=0.05), k
+
+
+def test_commissure_corners_are_found_in_the_state_not_at_the_roots_points(closed):
+    """The leaflets' shared corners are the fixed nodes of different leaflets that coincide
+    in the state: in the placement they are exactly the nodes at the root's three
+    commissure points (two leaflets each), and under a rigid motion, which moves them off
+    those points (as a design map does), the closed valve still has no crossing."""
+    v = closed.valve
+    g = V.commissure_groups(v, v.x_placed)
+    com = np.asarray(v.root.commissures)
+    at = np.linalg.norm(np.asarray(v.x_placed)[:, None] - com[None], axis=-1) < 1e-9
+    assert sorted(np.bincount(g[g >= 0]).tolist()) == [2, 2, 2]
+    np.testing.assert_array_equal(g >= 0, np.any(at, axis=1))
+    R = _rot_z(17.0)
+    moved = np.asarray(closed.x) @ R.T + np.array([3.0, -2.0, 5.0])
+    assert len(V.leaflet_crossings(v, moved)) == 0
+    assert len(V.leaflet_crossings(v, closed.x)) == 0
