@@ -13,6 +13,8 @@ the exact operator (Jacobian-vector products of the residual by autodiff).
 """
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -25,7 +27,70 @@ from .contact.smooth import _columns
 from .contact.soft_pairs import SoftPairs
 from .quick_jit import quick_jit
 
-__all__ = ["assemble", "pressure_blocks", "hinge_hessians", "local_hinges"]
+__all__ = ["assemble", "pressure_blocks", "hinge_hessians", "local_hinges", "BlockAssembler",
+           "BlockPattern"]
+
+
+class BlockAssembler:
+    """Sums dense blocks over node tuples into a sparse matrix over the free dofs (3 per
+    free node, node-major; entries that touch a fixed node are dropped, so the free dofs
+    are numbered directly).  The one sparse assembly of the project: `assemble` (the
+    adjoint's preconditioner) and the barrier Newton solver's projected tangent use it.
+
+    free: (N,) bool.  ``nf``: the number of free dofs."""
+
+    def __init__(self, free):
+        dof_free = np.repeat(np.asarray(free, bool), 3)
+        self.red = np.where(dof_free, np.cumsum(dof_free) - 1, -1)   # free dof id or -1
+        self.nf = int(dof_free.sum())
+
+    def _entries(self, nodes):
+        """Row and column free dof ids (B, 3n, 3n) of the blocks over ``nodes`` (B, n),
+        and the mask of entries between free dofs."""
+        nodes = np.asarray(nodes)
+        dofs = self.red[(3 * nodes[:, :, None] + np.arange(3)).reshape(len(nodes), -1)]
+        rows = np.broadcast_to(dofs[:, :, None], dofs.shape + (dofs.shape[1],))
+        cols = np.broadcast_to(dofs[:, None, :], rows.shape)
+        return rows, cols, (rows >= 0) & (cols >= 0)
+
+    def coo(self, blocks, nodes):
+        """CSR (nf, nf) of the blocks (B, 3n, 3n) over the node tuples (B, n); repeated
+        entries are summed."""
+        blocks = np.asarray(blocks)
+        rows, cols, keep = self._entries(nodes)
+        return sp.csr_matrix((blocks[keep], (rows[keep], cols[keep])),
+                             shape=(self.nf, self.nf))
+
+    def pattern(self, node_sets):
+        """The fixed sparsity pattern (`BlockPattern`) of blocks over the node tuples of
+        ``node_sets`` (a list of (B_i, n_i) arrays), sorted once: the barrier solver's
+        membrane and hinge blocks, assembled at every Newton step."""
+        rows, cols, keeps = zip(*(self._entries(n) for n in node_sets))
+        rows, cols, keep = (np.concatenate([a.reshape(-1) for a in arrs])
+                            for arrs in (rows, cols, keeps))
+        key = rows[keep].astype(np.int64) * self.nf + cols[keep]
+        uniq, slot = np.unique(key, return_inverse=True)
+        return BlockPattern(self.nf, keep, slot,
+                            np.searchsorted(uniq // self.nf, np.arange(self.nf + 1)),
+                            (uniq % self.nf).astype(np.int32), int(uniq.size))
+
+
+@dataclasses.dataclass(frozen=True)
+class BlockPattern:
+    """The CSR pattern of `BlockAssembler.pattern`; ``matrix(blocks)`` sums blocks given
+    in the pattern's order (a list of (B_i, k_i, k_i) arrays) into it."""
+
+    nf: int
+    keep: np.ndarray
+    slot: np.ndarray
+    indptr: np.ndarray
+    indices: np.ndarray
+    nnz: int
+
+    def matrix(self, blocks):
+        data = np.concatenate([np.asarray(b).reshape(-1) for b in blocks])
+        vals = np.bincount(self.slot, weights=data[self.keep], minlength=self.nnz)
+        return sp.csr_matrix((vals, self.indices, self.indptr), shape=(self.nf, self.nf))
 
 
 def local_hinges(problem):
@@ -113,26 +178,13 @@ def assemble(problem, params, x, nbrs=None):
     """The approximate stiffness K (3F x 3F scipy CSC, F free nodes, dofs node-major).
 
     Blocks that are zero (contact slots without a live pair) are dropped, and entries that
-    touch a fixed node are dropped before the matrix is built, so the free dofs are
-    numbered directly (no slicing of a 3N x 3N matrix)."""
+    touch a fixed node are dropped before the matrix is built (`BlockAssembler`)."""
     parts = jax.device_get(_blocks(jnp.asarray(x), problem, params, nbrs,
                                    *_hinge_args(problem)))
-    free = np.asarray(problem.free)
-    slot = np.full(problem.n_nodes, -1, np.int64)         # free index of each node, or -1
-    slot[free] = np.arange(int(free.sum()))
-    rows, cols, vals = [], [], []
+    asm = BlockAssembler(problem.free)
+    K = sp.csr_matrix((asm.nf, asm.nf))
     for H, nodes in parts:
-        H = np.asarray(H).reshape(len(H), -1)
-        keep = np.any(H != 0.0, axis=1)
-        H, s = H[keep], slot[np.asarray(nodes)[keep]]      # (B, k*k), (B, k)
-        dof = np.where(s[:, :, None] >= 0, 3 * s[:, :, None] + np.arange(3), -1)
-        dof = dof.reshape(len(H), -1)
-        k = dof.shape[1]
-        r, c = np.repeat(dof, k, axis=1).ravel(), np.tile(dof, (1, k)).ravel()
-        ok = (r >= 0) & (c >= 0)
-        rows.append(r[ok])
-        cols.append(c[ok])
-        vals.append(H.ravel()[ok])
-    n = 3 * int(free.sum())
-    return sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                         shape=(n, n))
+        H = np.asarray(H)
+        keep = np.any(H.reshape(len(H), -1) != 0.0, axis=1)
+        K = K + asm.coo(H[keep], np.asarray(nodes)[keep])
+    return K.tocsc()

@@ -195,40 +195,15 @@ class _Model:
         self.law = params.contact
         self.ref = jax.jit(assembly.prepare)(problem, params)
         self.free = np.asarray(problem.free)
-        n = self.free.shape[0]
-        dof_free = np.repeat(self.free, 3)
-        self.red = np.where(dof_free, np.cumsum(dof_free) - 1, -1)
-        self.nf = int(dof_free.sum())
-        tri = np.asarray(problem.triangles)
-        self.tri_dofs = (3 * tri[:, :, None] + np.arange(3)).reshape(-1, 9)
+        self.asm = tangent.BlockAssembler(self.free)
+        self.nf = self.asm.nf
         self.bends = self.ref.hinge_w is not None and params.bending is not None
         if self.bends:
             self.hinge_nodes, self.hinge_tris = tangent.local_hinges(problem)
-            self.hinge_dofs = (3 * self.hinge_nodes[:, :, None] + np.arange(3)).reshape(-1, 12)
-        else:
-            self.hinge_dofs = np.zeros((0, 12), np.int64)
-        self._static = self._pattern([self.tri_dofs, self.hinge_dofs])
-        self.n = n
-
-    # --- sparse assembly: a fixed pattern for the membrane, COO for the pairs
-    def _coo(self, dofs):
-        r = self.red[dofs]
-        rows = np.broadcast_to(r[:, :, None], dofs.shape + (dofs.shape[1],))
-        cols = np.broadcast_to(r[:, None, :], rows.shape)
-        keep = (rows >= 0) & (cols >= 0)
-        return rows, cols, keep
-
-    def _pattern(self, dof_sets):
-        rows, cols, keeps = [], [], []
-        for d in dof_sets:
-            r, c, k = self._coo(d)
-            rows.append(r.reshape(-1)), cols.append(c.reshape(-1)), keeps.append(k.reshape(-1))
-        rows, cols, keep = (np.concatenate(a) for a in (rows, cols, keeps))
-        key = rows[keep].astype(np.int64) * self.nf + cols[keep]
-        uniq, slot = np.unique(key, return_inverse=True)
-        return dict(keep=keep, slot=slot, indptr=np.searchsorted(uniq // self.nf,
-                                                                 np.arange(self.nf + 1)),
-                    indices=(uniq % self.nf).astype(np.int32), nnz=uniq.size)
+        hinges = self.hinge_nodes if self.bends else np.zeros((0, 4), np.int64)
+        # a fixed pattern for the membrane and hinge blocks; the pairs' blocks go by COO
+        self._static = self.asm.pattern([np.asarray(problem.triangles), hinges])
+        self.n = self.free.shape[0]
 
     def tangent(self, x, pairs):
         """Projected tangent (nf, nf) CSR over the free dofs at x, with the pair list.
@@ -241,23 +216,16 @@ class _Model:
         hb = (np.asarray(_hinge_blocks(xj, self.params, self.ref, self.hinge_nodes,
                                        self.hinge_tris))
               if self.bends else np.zeros((0, 12, 12)))
-        data = np.concatenate([tb.reshape(-1), hb.reshape(-1)])
-        st = self._static
-        vals = np.bincount(st["slot"], weights=data[st["keep"]], minlength=st["nnz"])
-        K = sp.csr_matrix((vals, st["indices"], st["indptr"]), shape=(self.nf, self.nf))
-        blocks, dofs = [], []
+        K = self._static.matrix([tb, hb])
+        blocks, nodes = [], []
         for s, k, (rows, w) in _chunks(pairs.pt, pairs.pt_w):
             blocks.append(np.asarray(_pt_blocks(self.law, xj, rows, w))[:k])
-            dofs.append(pairs.pt[s:s + k])
+            nodes.append(pairs.pt[s:s + k])
         for s, k, (rows, w, eps) in _chunks(pairs.ee, pairs.ee_w, pairs.ee_eps):
             blocks.append(np.asarray(_ee_blocks(self.law, xj, rows, w, eps))[:k])
-            dofs.append(pairs.ee[s:s + k])
+            nodes.append(pairs.ee[s:s + k])
         if blocks:
-            B = np.concatenate(blocks)
-            d = np.concatenate(dofs)
-            d = (3 * d[:, :, None] + np.arange(3)).reshape(-1, 12)
-            r, c, keep = self._coo(d)
-            K = K + sp.csr_matrix((B[keep], (r[keep], c[keep])), shape=K.shape)
+            K = K + self.asm.coo(np.concatenate(blocks), np.concatenate(nodes))
         return K
 
     def evaluate(self, x, pairs):
