@@ -226,8 +226,10 @@ def _metric_values(m):
                                                        for a in arrays])
 
 
-def _judge(rec: RunRecord, valve, sol, scene: Scene, x64, note: str = ""):
-    """Fill the checks of ``rec`` from the solution at its load and classify it."""
+def _judge(rec: RunRecord, valve, sol, scene: Scene, x64, note: str = "", limit=None):
+    """Fill the checks of ``rec`` from the solution at its load and classify it.  limit:
+    the `RampResult` of a closure that ended at a limit point (then ``sol`` is the
+    equilibrium at its highest pressure, and the run is reported as ``limit_point``)."""
     from .simulation import measure
     rec.result = sol.status
     rec.residual = float(sol.stats.residual)
@@ -259,7 +261,14 @@ def _judge(rec: RunRecord, valve, sol, scene: Scene, x64, note: str = ""):
         except JaxvalveError as e:
             notes.append(f"metrics: {type(e).__name__}: {e}")
     claimed = sol.converged
-    if claimed:
+    if limit is not None and claimed and not notes:
+        rec.outcome, rec.result = "reported", "limit_point"
+        rec.cause = limit.describe()
+    elif limit is not None:
+        rec.outcome, rec.result = "reported", "limit_point"
+        rec.cause = limit.describe() + " [state: " + "; ".join(
+            notes or [f"{sol.status} at relative residual {rec.residual:.2e}"]) + "]"
+    elif claimed:
         if not (math.isfinite(rec.residual) and rec.residual < scene.rtol):
             notes.append(f"claimed convergence at relative residual {rec.residual:.3g}")
         if not finite:
@@ -371,6 +380,27 @@ def _solve_stage(valve, scene, p, x0):
     return sol, x, note
 
 
+def _ramp_stage(valve, scene, p, x0, p_start):
+    """(solution, x float64, note, `RampResult`) of the closure at p from the equilibrium
+    x0 at p_start, with the continuation in pressure that `simulate` runs
+    (`continuation.ramp`): where a closure runs away (``escaped``), the pressure interval
+    is bisected from the last equilibrium, so a load past the membrane's inflation limit
+    ends as ``limit_point`` with the equilibrium at the highest pressure found.  A closure
+    that converges at p is one `_solve_stage`, as before.  ``steps`` counts every solve."""
+    from .continuation import ramp
+    notes = {}
+
+    def solve(q, x):
+        sol, _, note = _solve_stage(valve, scene, q, x)
+        notes[q] = note
+        return sol
+
+    rr = ramp(solve, np.asarray(x0, float), p, p_start)
+    sol, q = rr.final
+    sol = dataclasses.replace(sol, stats=dataclasses.replace(sol.stats, steps=rr.steps))
+    return sol, np.asarray(sol.x).astype(np.float64), notes.get(q, ""), rr
+
+
 def run_group(valve, *, template: str, mesh: str, model: str, precision: str,
               Es=MATRIX_E, Ps=MATRIX_P, rtol: float = 1e-4,
               max_steps: int = STRESS_MAX_STEPS, case: str = "matrix", extra: dict | None = None,
@@ -413,8 +443,11 @@ def run_group(valve, *, template: str, mesh: str, model: str, precision: str,
                                            "non-finite positions", sol1)
                 else:
                     rec.steps = int(sol1.stats.steps)
-                    sol, x, note = _solve_stage(valve, scene, rec.P, x1)
-                    _judge(rec, valve, sol, scene, x, note)
+                    sol, x, note, rr = _ramp_stage(valve, scene, rec.P, x1, HE_PRESSURE)
+                    _judge(rec, valve, sol, scene, x, note, limit=rr if rr.limit_point else None)
+                    if len(rr.history) > 1:       # the continuation's solves, in order
+                        rec.cause += " [continuation: " + ", ".join(
+                            f"{q:.3g} mmHg {r}" for q, r, _, _ in rr.history) + "]"
             except Exception as e:  # noqa: BLE001
                 _exception(rec, e)
             # the shared 3 mmHg stage (compile included) is timed in the group's first run
