@@ -31,6 +31,7 @@ import numpy as np
 
 from .errors import ParameterError
 from .solvers import RESULTS
+from .solvers.base import check_settings
 
 __all__ = ["Ramp", "RampResult", "ramp"]
 
@@ -44,11 +45,7 @@ class Ramp:
     max_solves: int = 30
 
     def __post_init__(self):
-        if not (np.isfinite(self.rtol) and 0 < self.rtol < 1):
-            raise ParameterError(f"Ramp.rtol must lie in (0, 1); got {self.rtol}")
-        if not (isinstance(self.max_solves, int) and self.max_solves > 0):
-            raise ParameterError(f"Ramp.max_solves must be a positive integer; got "
-                                 f"{self.max_solves!r}")
+        check_settings(self, dict(rtol="unit", max_solves="positive_count"))
 
 
 @dataclasses.dataclass(frozen=True)

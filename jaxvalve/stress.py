@@ -261,13 +261,9 @@ def _judge(rec: RunRecord, valve, sol, scene: Scene, x64, note: str = "", limit=
         except JaxvalveError as e:
             notes.append(f"metrics: {type(e).__name__}: {e}")
     claimed = sol.converged
-    if limit is not None and claimed and not notes:
+    if limit is not None:       # sol: the converged equilibrium at the limit pressure
         rec.outcome, rec.result = "reported", "limit_point"
-        rec.cause = limit.describe()
-    elif limit is not None:
-        rec.outcome, rec.result = "reported", "limit_point"
-        rec.cause = limit.describe() + " [state: " + "; ".join(
-            notes or [f"{sol.status} at relative residual {rec.residual:.2e}"]) + "]"
+        rec.cause = limit.describe() + (" [state: " + "; ".join(notes) + "]" if notes else "")
     elif claimed:
         if not (math.isfinite(rec.residual) and rec.residual < scene.rtol):
             notes.append(f"claimed convergence at relative residual {rec.residual:.3g}")

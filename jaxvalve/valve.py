@@ -11,6 +11,7 @@ import dataclasses
 import functools
 from typing import Any
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -20,8 +21,6 @@ from .errors import ConvergenceError, ParameterError
 from .leaflet_mesh import LeafletMesh
 from .placement import place_leaflet
 from .problem import Params, Problem, make_problem, mmhg
-import jax
-
 from .solvers import FIRE, RESULTS, Solution
 
 __all__ = ["Valve", "build_valve", "settle", "close", "valve_contact", "state_failure",
@@ -251,20 +250,13 @@ def commissure_groups(valve: Valve, x) -> np.ndarray:
     template: 1.6 mm per mm of r on the benchmark root."""
     x = np.asarray(x, float)
     fixed = np.flatnonzero(np.asarray(valve.problem.fixed))
-    body = np.asarray(valve.body)
-    tol = 1e-9 * max(1.0, float(np.max(np.abs(x[fixed]))))
+    p, b = x[fixed], np.asarray(valve.body)[fixed]
+    tol = 1e-9 * max(1.0, float(np.max(np.abs(p))))
+    same = np.linalg.norm(p[:, None] - p[None], axis=-1) <= tol        # (F, F)
+    shared = np.any(same & (b[:, None] != b[None]), axis=1)
+    # the group of a shared node: its point's first fixed node, numbered from 0
     group = np.full(x.shape[0], -1)
-    p = x[fixed]
-    d = np.linalg.norm(p[:, None] - p[None], axis=-1)
-    other = body[fixed][:, None] != body[fixed][None]
-    shared = np.any((d <= tol) & other, axis=1)
-    k = 0
-    for i in np.flatnonzero(shared):
-        if group[fixed[i]] >= 0:
-            continue
-        same = fixed[(d[i] <= tol)]
-        group[same] = k
-        k += 1
+    group[fixed[shared]] = np.unique(np.argmax(same, axis=1)[shared], return_inverse=True)[1]
     return group
 
 

@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..batching import batch_sum, branches, each_active
+from ..errors import ParameterError
 
 
 class RESULTS(enum.IntEnum):
@@ -119,7 +120,6 @@ _RANGES = {
     "unit": (lambda v: _real(v) and 0 < v < 1, "in (0, 1)"),
     "unit_closed": (lambda v: _real(v) and 0 < v <= 1, "in (0, 1]"),
     "above_one": (lambda v: _real(v) and v > 1, "finite and > 1"),
-    "non_negative": (lambda v: _real(v) and v >= 0, "finite and >= 0"),
     "count": (lambda v: _integer(v) and v >= 0, "an integer >= 0"),
     "positive_count": (lambda v: _integer(v) and v > 0, "an integer >= 1"),
 }
@@ -142,7 +142,6 @@ def check_settings(solver, ranges: dict, optional: tuple = ()):
     ranges: {field name: a key of `_RANGES`}; optional: fields that may also be None.
     Called by each solver's ``__post_init__``, so a bad setting fails when the solver is
     made, before anything is traced or compiled."""
-    from ..errors import ParameterError
     cls = type(solver).__name__
     for name, kind in ranges.items():
         v = getattr(solver, name)

@@ -6,6 +6,7 @@ import dataclasses
 import jax.numpy as jnp
 
 from ..batching import cond_each
+from ..errors import ParameterError
 from .base import RESULTS, check_settings, check_state, relative_residual
 
 
@@ -39,7 +40,6 @@ class FIRE:
                                   dt_max="positive", n_min="count", f_inc="above_one",
                                   f_dec="unit", alpha_start="unit", f_alpha="unit_closed",
                                   refresh="positive_count", dt_min="positive"))
-        from ..errors import ParameterError
         if not self.dt_min < self.dt_start <= self.dt_max:
             raise ParameterError(f"FIRE needs dt_min < dt_start <= dt_max; got dt_min="
                                  f"{self.dt_min}, dt_start={self.dt_start}, "

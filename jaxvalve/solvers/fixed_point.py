@@ -6,6 +6,7 @@ import dataclasses
 import jax.numpy as jnp
 
 from ..batching import cond_each
+from ..errors import ParameterError
 from .base import RESULTS, check_settings, check_state, relative_residual
 
 
@@ -36,7 +37,6 @@ class FixedPoint:
                                   delta="positive", safety="positive", refresh="count"),
                        optional=("rtol", "delta"))
         if not self.safety < 2:
-            from ..errors import ParameterError
             raise ParameterError(f"FixedPoint.safety must lie in (0, 2) (the explicit "
                                  f"iteration is unstable past 2); got {self.safety}")
 

@@ -12,6 +12,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
+from ..errors import ParameterError
 from .base import RESULTS, check_settings, check_state, relative_residual
 from .predictor import BulgePredictor
 
@@ -55,7 +56,6 @@ class NewtonKrylov:
         check_settings(self, dict(rtol="positive", max_steps="count", cg_max="positive_count",
                                   eta_max="unit", eta_min="unit", max_step="positive",
                                   mu0="positive", ls_steps="count", max_fails="count"))
-        from ..errors import ParameterError
         if not self.eta_min <= self.eta_max:
             raise ParameterError(f"NewtonKrylov needs eta_min <= eta_max; got eta_min="
                                  f"{self.eta_min}, eta_max={self.eta_max}")

@@ -2,6 +2,8 @@
 mass-spring modulus (eq. 3.3), a start with the leaflets pushed through one another, and
 meshes with perturbed and sliver triangles.  Each run converges with every check passed
 or reports why not; never silently wrong.  Benchmark template, h = 2 mm."""
+import re
+
 import numpy as np
 import pytest
 
@@ -100,3 +102,24 @@ def test_perturbed_and_sliver_meshes(mesh):
                             model="stvk", precision="float64", Es=(1.0,), Ps=(80.0,),
                             max_steps=MAX_STEPS, case=name)
     _never_silent(recs)
+
+
+def test_a_soft_neo_hookean_valve_past_its_inflation_limit_ends_at_a_limit_point():
+    """Neo-Hookean, E = 0.05 MPa (mu = E/3), paper template a at 80 mmHg: no equilibrium
+    exists there (the inflation limit ~ 1.24 mu H / R is near 11 mmHg), so the closure runs
+    away and the continuation in pressure brackets the limit. The run is reported as
+    limit_point, never as converged, with a bracket narrower than 1 % of its upper end
+    between the 3 mmHg equilibrium and the target, and the state at the limit is a clean
+    closed valve (no crossing, no fold)."""
+    tpls = S.paper_templates()
+    tpl = tpls["a"][0]
+    v = S.make_valve(tpl, H, S.mapped_mesh(mesh_leaflet(tpls["b"][0], H), tpl))
+    rec, = [r for r in S.run_group(v, template="a", mesh="regular", model="neo-hookean",
+                                   precision="float64", Es=(0.05,), Ps=(3.0, 80.0),
+                                   case="limit-point") if r.P == 80.0]
+    assert rec.outcome == "reported" and rec.result == "limit_point", rec.cause
+    lo, hi = (float(s) for s in re.search(r"no equilibrium above ([\d.]+) \(solves at "
+                                          r"([\d.]+)", rec.cause).groups())
+    assert 3.0 < lo < hi < 80.0 and hi - lo <= 0.01 * hi
+    assert rec.crossings == 0 and rec.min_J > 0 and rec.max_fold_deg < 150
+    assert "escaped" in rec.cause and "80 mmHg escaped" in rec.cause
