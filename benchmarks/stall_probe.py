@@ -2,14 +2,16 @@
 
 Closes each cell of the paper's Table 4 (mass-spring E1 x E2, E3 = 1.2 MPa, benchmark
 root and template) with the default path (one-sided soft-min penalty, FIRE), and where
-the 80 mmHg closure did not converge, probes the state it stopped at: each node moves
-along the residual force by ``t`` times that node's share (the node with the largest
-force moves t mm), and the change of each force term (elastic, bending, contact) is
-printed against the residual force |F|.  A change far above (stiffness x t) at
+the 80 mmHg closure did not converge, probes the state it stopped at (`jaxvalve.stall`,
+which `simulate` also runs on a closure stopped at its step cap): each node moves along
+the residual force by ``t`` times that node's share (the node with the largest force
+moves t mm), and the change of each force term (elastic, bending, contact) is printed
+against the residual force |F|.  A change far above (stiffness x t) at
 t = 1e-7 mm is a jump: the force is discontinuous there, and no solver can bring the
 residual below the jump.  Also printed: the node with the largest contact jump and
 whether it lies behind the face of another leaflet's nearest triangle (the one-sided
-law's side), the smallest triangle area and the sharpest fold.
+law's side) for the node where the contact force changed most, the smallest triangle
+area and the sharpest fold.
 
     python benchmarks/stall_probe.py [--h 1.5] [--t 1e-7] [--max-steps 50000]
         [--out benchmarks/results/stall_probe.txt]
@@ -17,7 +19,6 @@ law's side), the smallest triangle area and the sharpest fold.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -26,32 +27,16 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
 from closure_speed import Tee  # noqa: E402  (this folder is on the path of a script)
-from jaxvalve import Scene, assembly, equilibrium, simulate  # noqa: E402
+from jaxvalve import Scene, simulate  # noqa: E402
 from jaxvalve.bending import hinges  # noqa: E402
 from jaxvalve.cli.sweep import TABLE4_E1, TABLE4_E2, TABLE4_E3  # noqa: E402
 from jaxvalve.contact.geometry import point_triangle_distance_soa  # noqa: E402
 from jaxvalve.simulation import build_scene_valve  # noqa: E402
+from jaxvalve.stall import probe  # noqa: E402
 from jaxvalve.xla_setup import platform_summary  # noqa: E402
-
-
-def force_terms(valve, params, x):
-    """Elastic, bending, contact and pressure forces (N, 3) at x, free nodes only, with
-    pair lists built at x."""
-    pb = valve.problem
-    ref = assembly.prepare(pb, params)
-    nb = equilibrium.init_pairs(params.contact, pb, x, valve.skin)
-    free = np.asarray(pb.free)[:, None]
-    grad = jax.grad(assembly.conservative_energy)
-    el = -np.asarray(jax.grad(assembly.elastic_energy)(x, pb, params, ref))
-    eb = -np.asarray(grad(x, pb, dataclasses.replace(params, contact=None), ref))
-    al = -np.asarray(grad(x, pb, params, ref, nb))
-    fp = np.asarray(assembly.pressure_force(x, pb.triangles, params.pressure))
-    return dict(elastic=el * free, bending=(eb - el) * free, contact=(al - eb) * free,
-                pressure=fp * free)
 
 
 def nearest_side(valve, x, node):
@@ -113,18 +98,12 @@ def main(argv=None):
                 continue
             params = valve.params(sc.material(), sc.pressure, sc.contact_law(), sc.thickness,
                                   0.0, sc.bending_law())
-            f0 = force_terms(valve, params, jnp.asarray(x))
-            F = sum(f0[k] for k in ("elastic", "bending", "contact", "pressure"))
-            u = F / np.max(np.linalg.norm(F, axis=1))
-            f1 = force_terms(valve, params, jnp.asarray(x + args.t * u))
-            jump = {k: np.linalg.norm(f1[k] - f0[k], axis=1) for k in ("elastic", "bending",
-                                                                       "contact")}
-            node = int(np.argmax(jump["contact"]))
+            rep = probe(valve.problem, params, jnp.asarray(x), skin=valve.skin, step=args.t)
             sides = ", ".join(f"{d:.3f} {'behind' if b else 'front'}"
-                              for d, b in nearest_side(valve, x, node))
-            say(row + f"| {np.linalg.norm(F):.2e} | {np.linalg.norm(jump['elastic']):.1e} "
-                f"| {np.linalg.norm(jump['bending']):.1e} | {np.linalg.norm(jump['contact']):.1e} "
-                f"| node {node}: {sides} | {amin:.2f} | {fold:.0f} | {wall:.0f} |")
+                              for d, b in nearest_side(valve, x, rep.node))
+            say(row + f"| {rep.force:.2e} | {rep.jumps['elastic']:.1e} "
+                f"| {rep.jumps['bending']:.1e} | {rep.jumps['contact']:.1e} "
+                f"| node {rep.node}: {sides} | {amin:.2f} | {fold:.0f} | {wall:.0f} |")
     say.write(args.out)
 
 

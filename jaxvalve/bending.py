@@ -86,38 +86,20 @@ def hinge_weights(ref, hinge):
     return jnp.sum(e * e, -1) / (a1 + a2)
 
 
-#: Regularisation of the normals: n = N / sqrt(|N|^2 + (COLLAPSE L^2)^2) (`bending_energy`).
-COLLAPSE = 0.005
-
-
-def triangle_normals(x, triangles):
-    """Normals (M, 3) of length |N| / sqrt(|N|^2 + (COLLAPSE L^2)^2) <= 1, N = (b - a) x
-    (c - a), L the triangle's longest edge: unit normals (to 1.4e-5 on an equilateral
-    triangle) that shrink smoothly to zero as a triangle collapses, where a unit normal
-    turns arbitrarily fast: its derivative grows like 1 / area, and the hinge force of a
-    collapsed mass-spring triangle reached 45 N (against ~1e-2 N of pressure per node)."""
-    xt = x[triangles]
-    e = xt - jnp.roll(xt, 1, axis=1)
-    L2 = jnp.max(jnp.sum(e * e, -1), axis=-1)
-    N = jnp.cross(xt[:, 1] - xt[:, 0], xt[:, 2] - xt[:, 0])
-    return N / jnp.sqrt(jnp.sum(N * N, -1) + (COLLAPSE * L2) ** 2)[:, None]
+def _unit(v):
+    n2 = jnp.sum(v * v, -1, keepdims=True)
+    ok = n2 > 0
+    return jnp.where(ok, v / jnp.sqrt(jnp.where(ok, n2, 1.0)), 0.0)
 
 
 def bending_energy(x, hinge, weights, D, triangles):
-    """E_b (N mm) = D sum_e w_e (|n1| |n2| - n1 . n2) for positions x (N, 3): with unit
-    normals D sum_e w_e (1 - cos theta_e); the normals (`triangle_normals`) are computed
-    once per triangle of ``triangles`` (M, 3) and read per hinge (columns 4, 5 of
-    `hinges`).  Zero for any flat state; bounded forces at a collapsed triangle."""
-    n = triangle_normals(x, triangles)
+    """E_b (N mm) = D sum_e w_e (1 - n1 . n2) for positions x (N, 3); the unit normals are
+    computed once per triangle of ``triangles`` (M, 3) and read per hinge (columns 4, 5 of
+    `hinges`)."""
+    xt = x[triangles]
+    n = _unit(jnp.cross(xt[:, 1] - xt[:, 0], xt[:, 2] - xt[:, 0]))
     n1, n2 = n[hinge[:, 4]], n[hinge[:, 5]]
-    m1, m2 = (_norm(v) for v in (n1, n2))
-    return D * jnp.sum(weights * (m1 * m2 - jnp.sum(n1 * n2, -1)))
-
-
-def _norm(v):
-    n2 = jnp.sum(v * v, -1)
-    ok = n2 > 0
-    return jnp.where(ok, jnp.sqrt(jnp.where(ok, n2, 1.0)), 0.0)
+    return D * jnp.sum(weights * (1.0 - jnp.sum(n1 * n2, -1)))
 
 
 @jax.tree_util.register_dataclass

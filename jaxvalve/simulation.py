@@ -13,6 +13,7 @@ import time
 from typing import Any, Callable
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from . import valve as V
@@ -65,7 +66,8 @@ class SolveReport:
     the highest pressure (mmHg) with an equilibrium, whose state and residual are
     reported instead (`jaxvalve.continuation`).  state_pressure (mmHg): the pressure of
     the state reported, where it is not ``pressure`` (a limit point, or a continuation
-    that failed on the way)."""
+    that failed on the way).  cause: for a solve stopped at its step cap, whether the
+    force jumps where it stopped (`jaxvalve.stall`), else None."""
 
     pressure: float
     result: str
@@ -76,6 +78,7 @@ class SolveReport:
     compile_s: float
     limit_pressure: float | None = None
     state_pressure: float | None = None
+    cause: str | None = None
 
     @property
     def solve_s(self):
@@ -90,8 +93,9 @@ class SolveReport:
                     f"{self.residual:.2e}, {self.steps} steps)")
         at = ("" if self.state_pressure in (None, self.pressure)
               else f" (state at {self.state_pressure:.3g} mmHg)")
+        why = f"; {self.cause}" if self.cause else ""
         return (f"{'converged' if self.converged else self.result}{at}, residual "
-                f"{self.residual:.2e}, {self.steps} steps")
+                f"{self.residual:.2e}, {self.steps} steps{why}")
 
     def as_dict(self):
         d = dataclasses.asdict(self)
@@ -203,6 +207,20 @@ def build_scene_valve(scene: Scene, say=_quiet):
     return V.build_valve(root, lmesh)
 
 
+def _stall_cause(valve, scene, material, contact, bending, status, pressure, x):
+    """`stall.probe`'s verdict on a closure stopped at its step cap (smooth contact or
+    none; the barrier path has its own solver), else None."""
+    if status != RESULTS.max_steps_reached.name or not (contact is None
+                                                         or hasattr(contact, "energy")):
+        return None
+    from .stall import probe
+    params = valve.params(material, pressure, contact, scene.thickness,
+                          np.deg2rad(scene.fibre_angle), bending)
+    x = jnp.asarray(np.asarray(x, np.float64))
+    return probe(valve.problem, params.replace(ref=jnp.asarray(params.ref, x.dtype)), x,
+                 skin=valve.skin).cause()
+
+
 def simulate(scene: Scene | None = None, *, progress: Callable[[str], None] | None = None,
              throw: bool = True, valve=None) -> SimulationResult:
     """Close the valve of ``scene`` (default: the benchmark `Scene()`) and measure it.
@@ -252,12 +270,14 @@ def simulate(scene: Scene | None = None, *, progress: Callable[[str], None] | No
             say("  continuation: " + ", ".join(f"{q:.3g} mmHg {r} ({n} steps)"
                                                for q, r, n, _ in rr.history))
         limit = rr.pressure if rr.limit_point else None
-        rep = SolveReport(pressure=float(p),
-                          result=RESULTS.successful.name if rr.converged else rr.status,
+        status = RESULTS.successful.name if rr.converged else rr.status
+        rep = SolveReport(pressure=float(p), result=status,
                           converged=rr.converged, steps=rr.steps,
                           residual=float(sol.stats.residual), wall_s=wall,
                           compile_s=min(ct.seconds, wall), limit_pressure=limit,
-                          state_pressure=p_state)
+                          state_pressure=p_state,
+                          cause=_stall_cause(valve, scene, material, contact, bending,
+                                             status, p_state, sol.x))
         say(f"  {rep.describe()}; {rep.solve_s:.2f} s (+{rep.compile_s:.1f} s compile)")
         if throw and not rep.converged:
             raise ConvergenceError(f"valve closure at {p:g} mmHg did not converge: "

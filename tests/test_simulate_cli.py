@@ -109,6 +109,10 @@ def test_metrics_json_round_trips_and_matches_the_result(run):
         assert d["pressure"] == rep.pressure and d["converged"] == rep.converged
         assert d["result"] == rep.result == "max_steps_reached"
         assert d["residual"] == pytest.approx(rep.residual)
+        # stopped at the step cap mid-swing: the force is continuous, the solve was cut
+        # short (`jaxvalve.stall`); the cause is in the report, its JSON and status line
+        assert d["cause"] == rep.cause and "continuous" in rep.cause
+        assert rep.cause in d["status"]
         for k in ("wall_s", "compile_s", "solve_s"):
             assert d[k] >= 0
     assert data["mesh"]["triangles_per_leaflet"] == len(result.valve.leaflet.triangles)

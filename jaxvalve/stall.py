@@ -1,0 +1,100 @@
+"""Why a solve stopped short of equilibrium: is the force continuous where it stopped?
+
+A solver that hits its step cap far above its tolerance is either slow (stiff, soft or
+nearly free modes) or sitting on a jump of the force, where no point has zero force and
+no solver can bring the residual below the jump.  `probe` tells them apart with two force
+evaluations: every free node moves along the residual force by ``step`` times its share
+(the node with the largest force moves ``step`` mm), and the change of each force term
+is compared with what a continuous force allows at that move.  At step = 1e-7 mm a
+stiffness of 1e3 N/mm changes a force by 1e-4 N; a change far above both that and the
+residual itself is a jump.  On the soft valves of the paper's Table 4 the one-sided
+contact force jumps by 0.27-0.44 N where a free edge has folded round another leaflet's
+(`benchmarks/stall_probe.py`, docs/known-limits.md).
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import assembly, equilibrium
+
+__all__ = ["StallReport", "probe", "TERMS"]
+
+#: The force terms probed: strain, bending, contact (`assembly.force_parts`).
+TERMS = ("elastic", "bending", "contact")
+#: Largest stiffness (N/mm) a continuous force is granted; beyond it a change is a jump.
+STIFFNESS_CAP = 1e3
+
+
+@dataclasses.dataclass(frozen=True)
+class StallReport:
+    """force (N): the residual force's norm over the free nodes; jumps: per term of
+    `TERMS`, the norm (N) of its change under the probe move; node: where the largest
+    change of the term that jumped most lies; step: the move of the largest node (mm)."""
+
+    force: float
+    jumps: dict
+    node: int
+    step: float
+
+    @property
+    def term(self) -> str:
+        return max(self.jumps, key=self.jumps.get)
+
+    @property
+    def jumped(self) -> bool:
+        """True where the largest change exceeds both the residual force / 10 and what a
+        stiffness of `STIFFNESS_CAP` allows at the move."""
+        j = self.jumps[self.term]
+        return bool(j > 0.1 * self.force and j > STIFFNESS_CAP * self.step)
+
+    def cause(self) -> str:
+        """One line for reports."""
+        j = self.jumps[self.term]
+        if self.jumped:
+            return (f"the {self.term} force is discontinuous at node {self.node}: a "
+                    f"{self.step:g} mm move changes it by {j:.2g} N against a residual "
+                    f"force of {self.force:.2g} N, so no solver can converge here")
+        return (f"the force is continuous here (largest change {j:.2g} N, {self.term}, for "
+                f"a {self.step:g} mm move): the solve is slow, not stuck on a jump")
+
+    def as_dict(self):
+        return dict(force=self.force, jumps=dict(self.jumps), node=self.node,
+                    step=self.step, jumped=self.jumped, cause=self.cause())
+
+
+@jax.jit
+def _terms(x, problem, params, nbrs):
+    """Elastic, bending, contact and pressure forces (4, N, 3), fixed rows zero."""
+    ref = assembly.prepare(problem, params)
+    el = -jax.grad(assembly.elastic_energy)(x, problem, params, ref)
+    cons, fp, fpc = assembly.force_parts(x, problem, params, ref, nbrs)
+    bare = params.replace(contact=None)
+    no_contact = -jax.grad(assembly.conservative_energy)(x, problem, bare, ref)
+    free = problem.free[:, None]
+    return jnp.stack([el, no_contact - el, cons - no_contact + fpc, fp]) * free
+
+
+def probe(problem, params, x, *, skin=equilibrium.DEFAULT_SKIN, step=1e-7) -> StallReport:
+    """Probe the force at positions x (N, 3) mm of ``problem`` under ``params``, each
+    evaluation with contact pair lists built at its own positions (host side)."""
+    def at(y):
+        nbrs = None
+        if params.contact is not None:
+            nbrs = equilibrium.init_pairs(params.contact, problem, y, skin)
+        return np.asarray(_terms(y, problem, params, nbrs))
+
+    x = jnp.asarray(x)
+    f0 = at(x)
+    F = f0.sum(0)
+    big = float(np.max(np.linalg.norm(F, axis=1)))
+    u = F / big if big > 0 else F
+    f1 = at(x + step * jnp.asarray(u, x.dtype))
+    change = np.linalg.norm(f1[:3] - f0[:3], axis=2)            # (3, N)
+    jumps = {t: float(np.linalg.norm(change[k])) for k, t in enumerate(TERMS)}
+    k = TERMS.index(max(jumps, key=jumps.get))
+    return StallReport(force=float(np.linalg.norm(F)), jumps=jumps,
+                       node=int(np.argmax(change[k])), step=float(step))
