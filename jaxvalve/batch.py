@@ -58,6 +58,7 @@ from . import valve as V
 from .simulation import _quiet, build_scene_valve, compile_timer, measure
 from .solvers import RESULTS, Stats, iterate
 from .solvers.base import relative_residual
+from .stall import closure_cause
 
 __all__ = ["simulate_batch", "BatchResult", "BatchMember", "MemberSolve", "stack_materials",
            "METRICS"]
@@ -156,13 +157,15 @@ def _parameters(mat) -> dict:
 @dataclasses.dataclass(frozen=True)
 class MemberSolve:
     """One member's solve at one load: pressure (mmHg), result name (`RESULTS`),
-    converged, steps and relative residual ||F_free|| / ||F_pressure||."""
+    converged, steps and relative residual ||F_free|| / ||F_pressure||; cause: for a
+    solve stopped at its step cap, whether the force jumps there (`jaxvalve.stall`)."""
 
     pressure: float
     result: str
     converged: bool
     steps: int
     residual: float
+    cause: str | None = None
 
     def as_dict(self):
         return dataclasses.asdict(self)
@@ -210,7 +213,8 @@ class BatchMember:
     def describe(self) -> str:
         p = ", ".join(f"{k}={v:g}" for k, v in self.parameters.items())
         s = "; ".join(f"{r.pressure:g} mmHg: {r.result}, residual {r.residual:.3e} after "
-                      f"{r.steps} steps" for r in self.solves)
+                      f"{r.steps} steps" + (f" ({r.cause})" if r.cause else "")
+                      for r in self.solves)
         return f"member {self.index} ({self.model}: {p}): {s}"
 
 
@@ -262,7 +266,7 @@ class BatchResult:
                      converged=m.converged)
             for tag, s in zip(("he", "closing"), m.solves):
                 r.update({f"result_{tag}": s.result, f"steps_{tag}": s.steps,
-                          f"residual_{tag}": s.residual})
+                          f"residual_{tag}": s.residual, f"cause_{tag}": s.cause or ""})
             out.append(r)
         return out
 
@@ -506,7 +510,8 @@ def simulate_batch(scene: Scene | None = None, materials=None, *, valve=None,
             solves.append(MemberSolve(pressure=float(p), result=name,
                                       converged=name == RESULTS.successful.name,
                                       steps=int(st["steps"][i]),
-                                      residual=float(st["residual"][i])))
+                                      residual=float(st["residual"][i]),
+                                      cause=closure_cause(valve, scene, mat, name, p, x)))
             xs.append(x)
             finite.append(ok)
         say(f"measuring coaptation: member {i + 1}/{B}")

@@ -13,7 +13,6 @@ import time
 from typing import Any, Callable
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from . import valve as V
@@ -23,6 +22,7 @@ from .errors import ConvergenceError
 from .leaflet_mesh import mesh_leaflet
 from .scene import Scene
 from .solvers import RESULTS
+from .stall import closure_cause
 
 __all__ = ["simulate", "SimulationResult", "SolveReport", "compile_timer", "measure"]
 
@@ -207,20 +207,6 @@ def build_scene_valve(scene: Scene, say=_quiet):
     return V.build_valve(root, lmesh)
 
 
-def _stall_cause(valve, scene, material, contact, bending, status, pressure, x):
-    """`stall.probe`'s verdict on a closure stopped at its step cap (smooth contact or
-    none; the barrier path has its own solver), else None."""
-    if status != RESULTS.max_steps_reached.name or not (contact is None
-                                                         or hasattr(contact, "energy")):
-        return None
-    from .stall import probe
-    params = valve.params(material, pressure, contact, scene.thickness,
-                          np.deg2rad(scene.fibre_angle), bending)
-    x = jnp.asarray(np.asarray(x, np.float64))
-    return probe(valve.problem, params.replace(ref=jnp.asarray(params.ref, x.dtype)), x,
-                 skin=valve.skin).cause()
-
-
 def simulate(scene: Scene | None = None, *, progress: Callable[[str], None] | None = None,
              throw: bool = True, valve=None) -> SimulationResult:
     """Close the valve of ``scene`` (default: the benchmark `Scene()`) and measure it.
@@ -276,8 +262,8 @@ def simulate(scene: Scene | None = None, *, progress: Callable[[str], None] | No
                           residual=float(sol.stats.residual), wall_s=wall,
                           compile_s=min(ct.seconds, wall), limit_pressure=limit,
                           state_pressure=p_state,
-                          cause=_stall_cause(valve, scene, material, contact, bending,
-                                             status, p_state, sol.x))
+                          cause=closure_cause(valve, scene, material, status, p_state,
+                                              sol.x))
         say(f"  {rep.describe()}; {rep.solve_s:.2f} s (+{rep.compile_s:.1f} s compile)")
         if throw and not rep.converged:
             raise ConvergenceError(f"valve closure at {p:g} mmHg did not converge: "

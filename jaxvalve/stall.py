@@ -21,7 +21,7 @@ import numpy as np
 
 from . import assembly, equilibrium
 
-__all__ = ["StallReport", "probe", "TERMS"]
+__all__ = ["StallReport", "probe", "closure_cause", "TERMS"]
 
 #: The force terms probed: strain, bending, contact (`assembly.force_parts`).
 TERMS = ("elastic", "bending", "contact")
@@ -98,3 +98,17 @@ def probe(problem, params, x, *, skin=equilibrium.DEFAULT_SKIN, step=1e-7) -> St
     k = TERMS.index(max(jumps, key=jumps.get))
     return StallReport(force=float(np.linalg.norm(F)), jumps=jumps,
                        node=int(np.argmax(change[k])), step=float(step))
+
+
+def closure_cause(valve, scene, material, result: str, pressure, x) -> str | None:
+    """`probe`'s verdict (a line) on a valve closure of ``scene`` with ``material`` that
+    stopped at its step cap (``result`` 'max_steps_reached') at ``pressure`` mmHg in
+    state x; None for any other result, and for the barrier contact (its own solver)."""
+    contact = scene.contact_law()
+    if result != "max_steps_reached" or not (contact is None or hasattr(contact, "energy")):
+        return None
+    params = valve.params(material, pressure, contact, scene.thickness,
+                          np.deg2rad(scene.fibre_angle), scene.bending_law())
+    x = jnp.asarray(np.asarray(x, np.float64))
+    params = params.replace(ref=jnp.asarray(params.ref, x.dtype))
+    return probe(valve.problem, params, x, skin=valve.skin).cause()

@@ -94,6 +94,9 @@ def test_unconverged_member_is_reported_with_its_residual(runs):
     row = second.rows()[2]
     assert row["converged"] is False and row["residual_closing"] == closing.residual
     assert row["result_closing"] == "max_steps_reached" and row["steps_closing"] == 2000
+    # and why it stopped (`jaxvalve.stall`): in the member's report, the error and the row
+    assert closing.cause and closing.cause in msg and row["cause_closing"] == closing.cause
+    assert he.cause is None and row["cause_he"] == ""
     # its (finite, unconverged) state is still measured, as simulate(throw=False) does
     assert bad.measured and all(np.isfinite(v) for v in bad.summary().values())
 
