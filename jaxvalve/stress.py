@@ -46,6 +46,7 @@ from .leaflet_mesh import LeafletMesh, mesh_leaflet
 from .mesh import signed_areas_np, triangle_angles
 from .scene import MODELS, PRECISIONS, Scene
 from .solvers import RESULTS
+from .stall import closure_cause
 from .template import PAPER_TEMPLATES, Template
 
 __all__ = ["RunRecord", "MATRIX_E", "MATRIX_P", "STRESS_H", "STRESS_MAX_STEPS",
@@ -226,10 +227,13 @@ def _metric_values(m):
                                                        for a in arrays])
 
 
-def _judge(rec: RunRecord, valve, sol, scene: Scene, x64, note: str = "", limit=None):
+def _judge(rec: RunRecord, valve, sol, scene: Scene, x64, note: str = "", limit=None,
+           pressure=None):
     """Fill the checks of ``rec`` from the solution at its load and classify it.  limit:
     the `RampResult` of a closure that ended at a limit point (then ``sol`` is the
-    equilibrium at its highest pressure, and the run is reported as ``limit_point``)."""
+    equilibrium at its highest pressure, and the run is reported as ``limit_point``).
+    pressure: of the state ``sol`` (mmHg; default ``rec.P``), for the stall probe of a
+    closure stopped at its step cap (`stall.closure_cause`)."""
     from .simulation import measure
     rec.result = sol.status
     rec.residual = float(sol.stats.residual)
@@ -280,6 +284,10 @@ def _judge(rec: RunRecord, valve, sol, scene: Scene, x64, note: str = "", limit=
     else:
         rec.outcome = "reported"
         rec.cause = f"{rec.result} at relative residual {rec.residual:.2e}"
+        why = closure_cause(valve, scene, scene.material(), rec.result,
+                            rec.P if pressure is None else pressure, x64)
+        if why:
+            rec.cause += f" ({why})"
         if note:
             rec.result, rec.cause = "diverged", f"{note}; {rec.cause}"
         if notes:
@@ -440,7 +448,8 @@ def run_group(valve, *, template: str, mesh: str, model: str, precision: str,
                 else:
                     rec.steps = int(sol1.stats.steps)
                     sol, x, note, rr = _ramp_stage(valve, scene, rec.P, x1, HE_PRESSURE)
-                    _judge(rec, valve, sol, scene, x, note, limit=rr if rr.limit_point else None)
+                    _judge(rec, valve, sol, scene, x, note, limit=rr if rr.limit_point else None,
+                           pressure=rr.final[1])
                     if len(rr.history) > 1:       # the continuation's solves, in order
                         rec.cause += " [continuation: " + ", ".join(
                             f"{q:.3g} mmHg {r}" for q, r, _, _ in rr.history) + "]"

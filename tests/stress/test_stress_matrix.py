@@ -5,6 +5,8 @@ cause, or a clear error); never silently wrong.  Benchmark template at h = 2 mm 
 triangles), at most 3000 FIRE steps a closure.  The full matrix is
 ``benchmarks/stress.py``.
 """
+import re
+
 import numpy as np
 import pytest
 
@@ -121,6 +123,8 @@ def test_float32_runs_never_silent(valve):
         if r.outcome == "reported":
             assert r.result in ("max_steps_reached", "leaflets_cross", "inverted_triangles",
                                 "stretch_limit"), r.cause
+        if r.result == "max_steps_reached":    # and why it stopped (`jaxvalve.stall`)
+            assert re.search(r"the (\w+ )?force is (dis)?continuous", r.cause), r.cause
 
 
 def test_summary_table_counts(valve):
