@@ -209,22 +209,20 @@ def build_scene_valve(scene: Scene, say=_quiet):
 
 def _swing_shut(valve, scene, material, bending, x, say):
     """The barrier path's start (its time after compilation: ``timings['start']``): the
-    valve swung shut at the lower load by FIRE on the
-    penalty contact (`valve_contact`), where that closure converges to a state with no
-    crossing and every barrier distance positive; else ``x`` (the placement).  Projected
-    Newton from the open valve meets the fold limit of its line search at once on soft
-    leaflets (Table 4: no progress in 500 iterations), while FIRE's dynamics swing them
-    shut; from FIRE's state, Newton re-settles the valve on the barrier in a few steps.
-    The final states are equilibria of the barrier law either way."""
+    valve swung shut at the lower load by the default path (FIRE on the penalty contact,
+    to a relative residual of at most 1e-4), where that closure converges to a state with
+    no crossing and every barrier distance positive; else ``x`` (the placement).
+    Projected Newton from the open valve meets the fold limit of its line search at once
+    on soft leaflets (Table 4: no progress in 500 iterations), while FIRE's dynamics
+    swing them shut; from FIRE's state, Newton re-settles the valve on the barrier in a
+    few steps.  The final states are equilibria of the barrier law either way."""
     from .contact.ipc_pairs import build_pairs
-    from .scene import VALVE_DT_MAX
-    from .solvers import FIRE
+    start = scene.replace(contact="smooth", solver="fire", rtol=max(scene.rtol, 1e-4))
     say(f"swinging shut at {scene.he_pressure:g} mmHg (fire solver, smooth contact), the "
         "start of the barrier closures")
     t0 = time.perf_counter()
-    sol = V.close(valve, material, scene.he_pressure,
-                  solver=FIRE(rtol=1e-4, max_steps=scene.max_steps, dt_max=VALVE_DT_MAX),
-                  contact=V.valve_contact(), thickness=scene.thickness,
+    sol = V.close(valve, material, scene.he_pressure, solver=start.make_solver(),
+                  contact=start.contact_law(), thickness=scene.thickness,
                   fibre_angle=np.deg2rad(scene.fibre_angle), bending=bending, x0=x,
                   throw=False, check_state=True)
     y = np.asarray(sol.x, np.float64)
