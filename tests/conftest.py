@@ -84,6 +84,13 @@ def pytest_configure(config):
     os.environ["JAXVALVE_CACHE_DIR"] = "off"
 
 
+def pytest_sessionstart(session):
+    """The platform line first as well: the CI shows the head of a failing run's output."""
+    reporter = session.config.pluginmanager.get_plugin("terminalreporter")
+    if reporter is not None and not os.environ.get("PYTEST_XDIST_WORKER"):
+        reporter.write_line(f"jaxvalve test platform: {platform_summary()}")
+
+
 def pytest_terminal_summary(terminalreporter):
     """One line naming the platform, so that a failure on another machine (the CI's) can be
     matched to its CPU and JAX release."""

@@ -30,6 +30,7 @@ class RESULTS(enum.IntEnum):
     stagnation = 5
     # 6 and 7 were valve state checks; they are `jaxvalve.valve.STATE_FAILURES` now
     escaped = 8            # a node moved farther than the structure's size from the start
+    inconsistent = 9       # the loop said converged; an independent evaluation disagrees
 
     @property
     def message(self):
@@ -46,6 +47,10 @@ _MESSAGES = {
     RESULTS.escaped: ("a node moved farther from its start than the structure's diameter: "
                       "no equilibrium near the start (a load past the structure's limit "
                       "point, or an unrestrained rigid-body drift)"),
+    RESULTS.inconsistent: ("the solver's compiled loop reported convergence, but an "
+                           "independent evaluation of its result disagrees (residual, stretch "
+                           "check or finiteness), also after recompiling: a wrong compiled "
+                           "program, not an equilibrium"),
 }
 
 
