@@ -136,3 +136,44 @@ def test_solve_report_names_the_limit_point_and_the_state_pressure():
     ok = SolveReport(pressure=80.0, result="successful", converged=True, steps=9,
                      residual=2e-5, wall_s=1.0, compile_s=0.5, state_pressure=80.0)
     assert ok.describe() == "converged, residual 2.00e-05, 9 steps"
+
+
+class _Stalls:
+    """A stand-in solve that stagnates where the load step from its start state exceeds
+    ``reach`` (a Newton line search defeated by a long increment) and else converges;
+    the state is its pressure.  Records the pressures tried."""
+
+    def __init__(self, reach):
+        self.reach, self.tried = reach, []
+
+    def __call__(self, p, x):
+        from jaxvalve.solvers import Solution, Stats
+        self.tried.append(p)
+        ok = p - float(x[0]) <= self.reach
+        code = RESULTS.successful if ok else RESULTS.stagnation
+        stats = Stats(steps=10, force_evals=10, hvps=0, residual=1e-9 if ok else 0.2)
+        return Solution(x=np.array([p if ok else float(x[0])]), result=int(code), stats=stats)
+
+
+def test_a_stagnated_step_is_retried_at_half_the_increment_then_at_its_own_pressure():
+    s = _Stalls(reach=25.0)
+    out = ramp(s, np.array([3.0]), 80.0, 3.0)
+    assert out.converged and out.pressure == 80.0 and float(out.x[0]) == 80.0
+    # 80 and 41.5 too far from 3; 22.25 reached; 41.5 again from there; 80 too far from
+    # 41.5; 60.75; 80
+    assert s.tried == [80.0, 41.5, 22.25, 41.5, 80.0, 60.75, 80.0]
+    assert [h[1] for h in out.history].count("stagnation") == 3
+
+
+def test_a_ramp_that_stalls_is_reported_as_stagnation_never_as_a_limit_point():
+    # increments of 0.1 converge: the ramp creeps up and runs out of solves
+    s = _Stalls(reach=0.1)
+    out = ramp(s, np.array([3.0]), 80.0, 3.0, Ramp(rtol=0.01, max_solves=30))
+    assert out.status == "stagnation" and not out.converged and not out.limit_point
+    assert len(s.tried) == 30 and 3.0 < out.pressure < 4.0
+    assert out.p_escape is None
+    # no increment converges and the stall comes within rtol of the start: stagnation
+    s = _Stalls(reach=0.0)
+    out = ramp(s, np.array([3.0]), 80.0, 3.0, Ramp(rtol=0.01))
+    assert out.status == "stagnation" and out.pressure == 3.0
+    assert s.tried[-1] - 3.0 <= 0.01 * s.tried[-1] < s.tried[-2] - 3.0
