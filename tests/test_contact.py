@@ -651,3 +651,16 @@ def test_mesh_skin_keeps_the_candidates_per_node_fixed_under_refinement():
     assert grow_fixed > 2.2     # -> 4 = (1 mm / 0.5 mm)^2 at a fixed cutoff (2.44: edges)
     # ((g0 + h + R) / h)^2 with R ~ 0.75 h the bounding radius: (1.07 / 1.95 * 2)^2 = 1.2
     assert grow < 1.35 and grow < 0.6 * grow_fixed                          # 1.25
+
+
+def test_numpy_distance_to_a_collapsed_triangle_is_the_distance_to_its_segment():
+    """A triangle collapsed onto a segment (or a point) is measured without a warning
+    (warnings are errors here): the distance to the segment, or to the point."""
+    from jaxvalve.contact.geometry import point_triangle_distance_np
+    p = np.array([[0.5, 1.0, 0.0], [3.0, 0.0, 0.0], [0.0, 0.0, 2.0]])
+    a = np.zeros((3, 3))
+    b = np.tile([1.0, 0.0, 0.0], (3, 1))
+    c = np.tile([2.0, 0.0, 0.0], (3, 1))       # a, b, c on one line: the segment [0, 2]
+    np.testing.assert_allclose(point_triangle_distance_np(p, a, b, c), [1.0, 1.0, 2.0])
+    np.testing.assert_allclose(point_triangle_distance_np(p, a, a, a),
+                               np.linalg.norm(p, axis=1))

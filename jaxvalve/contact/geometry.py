@@ -280,7 +280,10 @@ def point_triangle_distance_np(p, a, b, c):
         t_bc = (d4 - d3) / ((d4 - d3) + (d5 - d6))
         den = va + vb + vc
         v, w = vb / den, vc / den
-    face = a + v[:, None] * ab + w[:, None] * ac
+        # a collapsed triangle (den = 0) gives inf/nan here, in branches never selected
+        face = a + v[:, None] * ab + w[:, None] * ac
+        choices = [a, b, a + t_ab[:, None] * ab, c, a + t_ac[:, None] * ac,
+                   b + t_bc[:, None] * (c - b)]
     conds = [
         (d1 <= 0) & (d2 <= 0),
         (d3 >= 0) & (d4 <= d3),
@@ -289,8 +292,6 @@ def point_triangle_distance_np(p, a, b, c):
         (vb <= 0) & (d2 >= 0) & (d6 <= 0),
         (va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0),
     ]
-    choices = [a, b, a + t_ab[:, None] * ab, c, a + t_ac[:, None] * ac,
-               b + t_bc[:, None] * (c - b)]
     q = face
     for cond, ch in zip(reversed(conds), reversed(choices)):
         q = np.where(cond[:, None], ch, q)
