@@ -33,12 +33,23 @@ STIFFNESS_CAP = 1e3
 class StallReport:
     """force (N): the residual force's norm over the free nodes; jumps: per term of
     `TERMS`, the norm (N) of its change under the probe move; node: where the largest
-    change of the term that jumped most lies; step: the move of the largest node (mm)."""
+    change of the term that jumped most lies; step: the move of the largest node (mm);
+    floor (N): the rounding floor of the residual force in the solve's precision, its
+    machine epsilon times the norm of the nodes' summed term magnitudes (the terms cancel
+    to the residual, so it cannot be computed more exactly than that); precision: that
+    precision's name."""
 
     force: float
     jumps: dict
     node: int
     step: float
+    floor: float = 0.0
+    precision: str = "float64"
+
+    @property
+    def at_floor(self) -> bool:
+        """True where the residual force is within 10x its rounding floor."""
+        return bool(self.force <= 10.0 * self.floor)
 
     @property
     def term(self) -> str:
@@ -58,12 +69,17 @@ class StallReport:
             return (f"the {self.term} force is discontinuous at node {self.node}: a "
                     f"{self.step:g} mm move changes it by {j:.2g} N against a residual "
                     f"force of {self.force:.2g} N, so no solver can converge here")
+        if self.at_floor:
+            return (f"the residual force {self.force:.2g} N is at the rounding floor of "
+                    f"{self.precision} (about {self.floor:.2g} N: the force terms cancel "
+                    "to it), so the tolerance is below what this precision can resolve")
         return (f"the force is continuous here (largest change {j:.2g} N, {self.term}, for "
                 f"a {self.step:g} mm move): the solve is slow, not stuck on a jump")
 
     def as_dict(self):
         return dict(force=self.force, jumps=dict(self.jumps), node=self.node,
-                    step=self.step, jumped=self.jumped, cause=self.cause())
+                    step=self.step, jumped=self.jumped, floor=self.floor,
+                    precision=self.precision, cause=self.cause())
 
 
 @jax.jit
@@ -78,9 +94,11 @@ def _terms(x, problem, params, nbrs):
     return jnp.stack([el, no_contact - el, cons - no_contact + fpc, fp]) * free
 
 
-def probe(problem, params, x, *, skin=equilibrium.DEFAULT_SKIN, step=1e-7) -> StallReport:
+def probe(problem, params, x, *, skin=equilibrium.DEFAULT_SKIN, step=1e-7,
+          precision="float64") -> StallReport:
     """Probe the force at positions x (N, 3) mm of ``problem`` under ``params``, each
-    evaluation with contact pair lists built at its own positions (host side)."""
+    evaluation with contact pair lists built at its own positions (host side; evaluate
+    in float64).  precision: that of the solve being judged (its rounding floor)."""
     def at(y):
         nbrs = None
         if params.contact is not None:
@@ -96,8 +114,11 @@ def probe(problem, params, x, *, skin=equilibrium.DEFAULT_SKIN, step=1e-7) -> St
     change = np.linalg.norm(f1[:3] - f0[:3], axis=2)            # (3, N)
     jumps = {t: float(np.linalg.norm(change[k])) for k, t in enumerate(TERMS)}
     k = TERMS.index(max(jumps, key=jumps.get))
+    eps = float(np.finfo(np.dtype(precision)).eps)
+    floor = eps * float(np.linalg.norm(np.abs(f0).sum(0)))
     return StallReport(force=float(np.linalg.norm(F)), jumps=jumps,
-                       node=int(np.argmax(change[k])), step=float(step))
+                       node=int(np.argmax(change[k])), step=float(step), floor=floor,
+                       precision=np.dtype(precision).name)
 
 
 def closure_cause(valve, scene, material, result: str, pressure, x) -> str | None:
@@ -111,4 +132,5 @@ def closure_cause(valve, scene, material, result: str, pressure, x) -> str | Non
                           np.deg2rad(scene.fibre_angle), scene.bending_law())
     x = jnp.asarray(np.asarray(x, np.float64))
     params = params.replace(ref=jnp.asarray(params.ref, x.dtype))
-    return probe(valve.problem, params, x, skin=valve.skin).cause()
+    return probe(valve.problem, params, x, skin=valve.skin,
+                 precision=scene.precision).cause()

@@ -272,3 +272,18 @@ def test_cli_exits_3_when_the_final_check_disagrees(monkeypatch, tmp_path, capsy
         optimize.run.optimize_template(Scene(), Objective(), verify_rtol=float("nan"))
     with pytest.raises(ParameterError, match="warm_start must be True or False"):
         optimize.run.optimize_template(Scene(), Objective(), warm_start="no")
+
+
+def test_a_closure_stopped_at_its_step_cap_names_the_stall_probes_verdict(evaluator,
+                                                                          monkeypatch):
+    """The evaluator reports why a closure stopped at its cap, as `simulate` does
+    (`jaxvalve.stall`): here 20 steps from the open valve, far from equilibrium on a
+    continuous force, so the verdict is a slow solve, not a jump."""
+    import dataclasses
+
+    monkeypatch.setattr(evaluator, "solver", dataclasses.replace(evaluator.solver,
+                                                                 max_steps=20))
+    ev = evaluator.forward(BASE)
+    assert not ev.converged and "max_steps_reached" in ev.reason
+    assert "the solve is slow, not stuck on a jump" in ev.reason
+    assert ev.solves[-1]["cause"] in ev.reason

@@ -46,3 +46,24 @@ def test_a_continuous_force_is_reported_as_a_slow_solve():
         assert not rep.jumped, rep
         assert max(rep.jumps.values()) < stall.STIFFNESS_CAP * rep.step
         assert rep.force > 0.05 and "continuous" in rep.cause()
+
+
+def test_a_residual_below_the_float32_rounding_floor_is_named_as_such():
+    """An equilibrium solved to 1e-11 in float64: in float32 its residual force lies far
+    below the rounding floor (eps32 times the cancelling terms), in float64 above its own."""
+    import jax.numpy as jnp
+    from jaxvalve import equilibrium, meshgen
+    from jaxvalve.materials import NeoHookean
+    from jaxvalve.problem import mmhg
+    from jaxvalve.solvers import NewtonKrylov
+    p, t, b = meshgen.disk(5.0, 2)
+    prob, ref = make_problem(p, t, fixed=b)
+    params = Params(ref=ref, material=NeoHookean(0.1), thickness=0.3, pressure=mmhg(80.0))
+    sol = equilibrium.solve(prob, params, jnp.asarray(meshgen.lift(p)), NewtonKrylov(rtol=1e-11))
+    r32 = stall.probe(prob, params, sol.x, precision="float32")
+    r64 = stall.probe(prob, params, sol.x, precision="float64")
+    assert r32.force == r64.force and not r32.jumped
+    assert r32.floor / r64.floor == pytest.approx(np.finfo(np.float32).eps
+                                                  / np.finfo(np.float64).eps)
+    assert r32.at_floor and "rounding floor of float32" in r32.cause()
+    assert not r64.at_floor and "slow" in r64.cause()
