@@ -11,8 +11,9 @@ from the start state it tries the target; where a solve runs away it bisects the
 pressure interval between the last equilibrium and the runaway, warm-starting every solve
 from the last equilibrium, until the interval is narrower than ``rtol`` times its upper
 end.  A solve that stagnates (a Newton line search that finds no acceptable step: the
-load increment was too large for the solver, not a sign that no equilibrium exists) is
-treated as a step too long: the ramp retries at the midpoint between the last
+load increment was too large for the solver, not a sign that no equilibrium exists), or
+fails in another way its solver declares (`cut_on`: the barrier Newton's iteration cap),
+is treated as a step too long: the ramp retries at the midpoint between the last
 equilibrium and the stalled pressure, and after each equilibrium reached that way tries
 the stalled pressure again, from the nearer state.  (The soft Table 4 cell E1 = 0.05,
 E2 = 0.569 MPa stagnates from 3 straight to 80 mmHg on the barrier path and converges
@@ -39,7 +40,7 @@ from .errors import ParameterError
 from .solvers import RESULTS
 from .solvers.base import check_settings
 
-__all__ = ["Ramp", "RampResult", "ramp"]
+__all__ = ["Ramp", "RampResult", "ramp", "cut_on", "CUT_ON"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -105,13 +106,27 @@ class RampResult:
         return f"{self.status} (highest equilibrium at {self.pressure:.4g}){tail}"
 
 
+#: The failures after which `ramp` cuts the load step, by default: a stagnated Newton
+#: line search.
+CUT_ON = ("stagnation",)
+
+
+def cut_on(solver) -> tuple:
+    """The `RESULTS` names after which `ramp` cuts the load step for ``solver``: its own
+    ``cut_on`` where it declares one (a Newton solver that has not converged within its
+    iteration cap is, as in finite-element load stepping, taken to have been given too
+    long a step), else `CUT_ON`."""
+    return tuple(getattr(solver, "cut_on", CUT_ON))
+
+
 def ramp(solve: Callable, x0, p_target: float, p_start: float = 0.0,
-         settings: Ramp | None = None) -> RampResult:
+         settings: Ramp | None = None, cut: tuple = CUT_ON) -> RampResult:
     """Continuation in pressure from an equilibrium x0 at p_start to p_target.
 
     solve(p, x) -> `Solution`: the equilibrium at pressure p from the start x.  The first
     solve is at p_target; where it converges or fails for a reason other than a runaway,
-    it is the only one.  Pressures in any unit, p_target > p_start >= 0."""
+    it is the only one.  Pressures in any unit, p_target > p_start >= 0.
+    cut: the `RESULTS` names of failures that cut the load step (`cut_on`)."""
     settings = Ramp() if settings is None else settings
     p_target, p_start = float(p_target), float(p_start)
     if not (np.isfinite(p_target) and np.isfinite(p_start) and p_target > p_start >= 0):
@@ -142,7 +157,7 @@ def ramp(solve: Callable, x0, p_target: float, p_start: float = 0.0,
                     break
                 return RampResult("limit_point", p_ok, p_bad, x_ok, sol_ok, sol,
                                   tuple(history), steps)
-        elif status == RESULTS.stagnation.name and p - p_ok > settings.rtol * p:
+        elif status in cut and p - p_ok > settings.rtol * p:
             p_stall = p
         else:
             return RampResult(status, p_ok, p_bad, x_ok, sol_ok, sol, tuple(history), steps)

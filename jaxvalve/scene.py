@@ -38,9 +38,11 @@ PRECISIONS = ("float64", "float32")
 #: StVK closure at 80 mmHg take 46 % more.
 VALVE_DT_MAX = 1.5
 
-#: Newton iterations of a barrier closure at most (``max_steps`` caps it lower): the
-#: benchmark valve takes 50-100 a load (`benchmarks/closure_speed.py`).
-BARRIER_NEWTON_STEPS = 500
+#: Newton iterations of one barrier closure at most (``max_steps`` caps it lower): the
+#: benchmark valve takes 50-130 a load (`benchmarks/closure_speed.py`,
+#: `benchmarks/table4_barrier.py`); a load step not closed within it is cut by the
+#: continuation in pressure (`jaxvalve.continuation.cut_on`).
+BARRIER_NEWTON_STEPS = 200
 
 
 @dataclasses.dataclass(frozen=True)

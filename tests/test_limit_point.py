@@ -177,3 +177,24 @@ def test_a_ramp_that_stalls_is_reported_as_stagnation_never_as_a_limit_point():
     out = ramp(s, np.array([3.0]), 80.0, 3.0, Ramp(rtol=0.01))
     assert out.status == "stagnation" and out.pressure == 3.0
     assert s.tried[-1] - 3.0 <= 0.01 * s.tried[-1] < s.tried[-2] - 3.0
+
+
+def test_a_solver_may_declare_its_step_cap_a_load_step_too_long():
+    """The barrier Newton declares `max_steps_reached` a step too long (cut_on); FIRE does
+    not, so its cap ends the ramp."""
+    from jaxvalve.continuation import CUT_ON, cut_on
+    from jaxvalve.solvers import BarrierNewton
+
+    class Capped(_Stalls):
+        def __call__(self, p, x):
+            sol = super().__call__(p, x)
+            code = RESULTS.successful if sol.converged else RESULTS.max_steps_reached
+            return type(sol)(x=sol.x, result=int(code), stats=sol.stats)
+
+    assert "max_steps_reached" in cut_on(BarrierNewton()) and cut_on(FIRE()) == CUT_ON
+    s = Capped(reach=25.0)
+    out = ramp(s, np.array([3.0]), 80.0, 3.0, cut=cut_on(BarrierNewton()))
+    assert out.converged and s.tried == [80.0, 41.5, 22.25, 41.5, 80.0, 60.75, 80.0]
+    s = Capped(reach=25.0)
+    out = ramp(s, np.array([3.0]), 80.0, 3.0, cut=cut_on(FIRE()))
+    assert out.status == "max_steps_reached" and s.tried == [80.0]

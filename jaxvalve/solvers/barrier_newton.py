@@ -74,6 +74,10 @@ class BarrierNewton:
     krylov_below: float = 0.05
     krylov_rtol: float = 1e-2
     krylov_iters: int = 20
+    #: failures after which continuation in pressure cuts the load step
+    #: (`jaxvalve.continuation.cut_on`): Newton converges in tens of iterations from a
+    #: near enough start, so a solve still short of rtol at its cap had too long a step
+    cut_on = ("stagnation", "max_steps_reached")
 
     def __post_init__(self):
         check_settings(self, dict(rtol="positive", max_steps="positive_count",
