@@ -21,7 +21,7 @@ import numpy as np
 
 from . import assembly, equilibrium
 
-__all__ = ["StallReport", "probe", "closure_cause", "TERMS"]
+__all__ = ["StallReport", "probe", "stopped_cause", "closure_cause", "TERMS"]
 
 #: The force terms probed: strain, bending, contact (`assembly.force_parts`).
 TERMS = ("elastic", "bending", "contact")
@@ -121,16 +121,25 @@ def probe(problem, params, x, *, skin=equilibrium.DEFAULT_SKIN, step=1e-7,
                        precision=np.dtype(precision).name)
 
 
-def closure_cause(valve, scene, material, result: str, pressure, x) -> str | None:
-    """`probe`'s verdict (a line) on a valve closure of ``scene`` with ``material`` that
-    stopped at its step cap (``result`` 'max_steps_reached') at ``pressure`` mmHg in
-    state x; None for any other result, and for the barrier contact (its own solver)."""
-    contact = scene.contact_law()
+def stopped_cause(problem, params, result: str, x, *, skin, precision="float64"):
+    """`probe`'s verdict (a line) on a solve of ``problem`` under ``params`` that stopped
+    at its step cap (``result`` 'max_steps_reached') in state x (N, 3) mm, evaluated in
+    float64; None for any other result, for non-finite x, and for a contact law without
+    a pointwise ``energy`` (the paper's law; the barrier, solved by its own Newton)."""
+    contact = params.contact
     if result != "max_steps_reached" or not (contact is None or hasattr(contact, "energy")):
         return None
-    params = valve.params(material, pressure, contact, scene.thickness,
+    if not np.all(np.isfinite(np.asarray(x))):
+        return None
+    p64 = jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float64), params)
+    return probe(problem, p64, jnp.asarray(np.asarray(x, np.float64)), skin=skin,
+                 precision=precision).cause()
+
+
+def closure_cause(valve, scene, material, result: str, pressure, x) -> str | None:
+    """`stopped_cause` of a valve closure of ``scene`` with ``material`` at ``pressure``
+    mmHg in state x."""
+    params = valve.params(material, pressure, scene.contact_law(), scene.thickness,
                           np.deg2rad(scene.fibre_angle), scene.bending_law())
-    x = jnp.asarray(np.asarray(x, np.float64))
-    params = params.replace(ref=jnp.asarray(params.ref, x.dtype))
-    return probe(valve.problem, params, x, skin=valve.skin,
-                 precision=scene.precision).cause()
+    return stopped_cause(valve.problem, params, result, x, skin=valve.skin,
+                         precision=scene.precision)

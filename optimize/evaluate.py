@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxvalve import equilibrium
+from jaxvalve import equilibrium, stall
 from jaxvalve import valve as V
 from jaxvalve.coaptation import annulus_level
 from jaxvalve.coaptation.smooth import smooth_metrics, smooth_plan
@@ -233,7 +233,9 @@ class Evaluator:
                                seconds=time.perf_counter() - t0))
             if not ok:
                 reason = f"closure at {self.pressure[load]:g} mmHg: {sol.describe()}"
-                cause = self._stall_cause(sol, params, x)
+                cause = stall.stopped_cause(self.valve.problem, params, sol.status, x,
+                                            skin=self.valve.skin,
+                                            precision=self.scene.precision)
                 if cause:
                     reason += f"; {cause}"
                     solves[-1]["cause"] = cause
@@ -254,18 +256,6 @@ class Evaluator:
         reason = "" if np.isfinite(value) else f"the objective is not finite: {terms}"
         return Evaluation(rab, self.generation, states, plans, metrics, terms, value, d_cc,
                           tuple(solves), bool(np.isfinite(value)), reason, (g, gx))
-
-    def _stall_cause(self, sol, params, x):
-        """`jaxvalve.stall.probe`'s verdict on a closure stopped at its step cap (the
-        smooth contact law only, as `simulate` reports it), else None."""
-        if sol.status != "max_steps_reached" or not np.all(np.isfinite(x)):
-            return None
-        if params.contact is not None and not hasattr(params.contact, "energy"):
-            return None
-        from jaxvalve import stall
-        p64 = jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float64), params)
-        return stall.probe(self.valve.problem, p64, jnp.asarray(x, jnp.float64),
-                           skin=self.valve.skin, precision=self.scene.precision).cause()
 
     def result(self, ev: Evaluation, *, throw: bool = True):
         """The exact (non-smooth) coaptation of a converged evaluation, as the

@@ -280,7 +280,7 @@ def point_triangle_distance_np(p, a, b, c):
         t_bc = (d4 - d3) / ((d4 - d3) + (d5 - d6))
         den = va + vb + vc
         v, w = vb / den, vc / den
-        # a collapsed triangle (den = 0) gives inf/nan here, in branches never selected
+        # a collapsed triangle (den = 0) gives nan or inf here, so inside the guard
         face = a + v[:, None] * ab + w[:, None] * ac
         choices = [a, b, a + t_ab[:, None] * ab, c, a + t_ac[:, None] * ac,
                    b + t_bc[:, None] * (c - b)]

@@ -406,7 +406,7 @@ def solve_barrier(problem, params, x0, solver: BarrierNewton, topo: BarrierTopol
             continue
         dproj = lu.solve(rhs)
         # candidate directions, best first: near equilibrium, Newton-Krylov on the exact
-        # Jacobian (when GMRES met its tolerance); always the projected direction, whose
+        # Jacobian (wherever finite, `_krylov`); always the projected direction, whose
         # merit slope is positive (Phi is the merit of a symmetric positive semi-definite
         # model), and which takes over where the exact Jacobian's step fails its line
         # search (a nearly singular Jacobian: the coapted leaflets' sliding mode)
