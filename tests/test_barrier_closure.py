@@ -103,16 +103,49 @@ def test_barrier_forces_obey_newtons_third_law(valve, closed):
 
 
 def test_exact_jacobian_matches_finite_differences(valve, closed):
-    """The Newton-Krylov product dF/dx . v (membrane, follower pressure, barrier) against a
-    central difference of the force, at the closed valve."""
+    """The assembled exact Jacobian of the Newton-Krylov directions, -dF/dx . v (membrane,
+    bending, follower pressure, barrier), against a central difference of the force at
+    the closed valve; it is not symmetric (the follower pressure), and the projected
+    tangent assembled beside it is."""
     x = closed[80.0][2]
     model = _model(valve)
     pairs = build_pairs(valve.barrier_topology, x, 0.3)
     v = np.random.default_rng(1).normal(size=x.shape) * model.free[:, None] * 1e-3
     eps = 1e-3
     fd = (model.evaluate(x + eps * v, pairs)[1] - model.evaluate(x - eps * v, pairs)[1]) / (2 * eps)
-    jv = model.jacobian_vp(x, v, pairs)
+    K, Kx = model.tangent(x, pairs, exact=True)
+    free = model.free
+    jv = np.zeros_like(x)
+    jv[free] = -(Kx @ v[free].reshape(-1)).reshape(-1, 3)
     np.testing.assert_allclose(jv, fd, atol=1e-5 * np.abs(fd).max())
+    assert abs(Kx - Kx.T).max() > 1e-6 * abs(Kx).max()
+    assert abs(K - K.T).max() <= 1e-12 * abs(K).max()
+
+
+def test_normal_barrier_blocks_are_the_exact_hessian_along_the_normal():
+    """The far-field tangent's barrier blocks (`_normal_blocks`): positive semi-definite,
+    rank one, and equal to the exact Hessian of the pair's energy along the contact
+    normal (a node above a triangle's interior, moved along the face normal)."""
+    import jax
+    from jaxvalve.contact.barrier import pt_energies
+    from jaxvalve.solvers.barrier_newton import _pt_blocks, _pt_normal_blocks
+    law = BarrierContact()
+    w = np.array([0.7])
+    rows = np.array([[0, 1, 2, 3]])
+    for h in (0.01, 0.05, 0.15):
+        x = np.array([[0.3, 0.2, h], [0, 0, 0], [1, 0, 0], [0, 1, 0]], float)
+        Hn = np.asarray(_pt_normal_blocks(law, jnp.asarray(x), rows, w))[0]
+        Hx = np.asarray(jax.hessian(lambda y: pt_energies(
+            law, y.reshape(4, 3), jnp.arange(4)[None], w)[0])(jnp.asarray(x.reshape(-1))))
+        Hp = np.asarray(_pt_blocks(law, jnp.asarray(x), rows, w)[0])[0]
+        n = np.zeros(12)
+        n[2], n[[5, 8, 11]] = 1.0, -1.0 / 3.0                 # node up, triangle down
+        np.testing.assert_allclose(n @ Hn @ n, n @ Hx @ n, rtol=1e-10)
+        ev = np.linalg.eigvalsh(Hn)
+        assert ev[0] >= -1e-12 * ev[-1] and np.sum(ev > 1e-9 * ev[-1]) == 1
+        assert n @ Hp @ n > 0
+    x = np.array([[0.3, 0.2, 0.25], [0, 0, 0], [1, 0, 0], [0, 1, 0]], float)   # beyond d_hat
+    assert not np.any(np.asarray(_pt_normal_blocks(law, jnp.asarray(x), rows, w)))
 
 
 def test_tangent_is_symmetric_and_its_membrane_part_semidefinite(valve, closed):

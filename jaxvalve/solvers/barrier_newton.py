@@ -10,7 +10,12 @@ contact (`jaxvalve.contact.ccd`), so the leaflets can never cross.  Each step:
 2. Direction.  (K + diag(K) / tau) d = F, with a sparse LU factorisation (scipy's SuperLU);
    tau is the pseudo-time step of pseudo-transient continuation (switched evolution
    relaxation: tau grows as the residual falls, and is cut where a step had to be
-   shortened), which keeps the first steps short while the leaflets swing shut.
+   shortened), which keeps the first steps short while the leaflets swing shut.  Below a
+   relative residual of ``exact_below`` the first direction tried is Newton's on the exact
+   Jacobian -dF/dx (unsymmetric: the follower pressure), assembled from the same element,
+   hinge and pair Hessians before projection, solved inexactly by GMRES preconditioned by
+   the projected factor (`_krylov`): fast convergence at the end, where the projected
+   model alone converges linearly.
 3. Step length.  At most ``dx_max`` mm for any node; then the largest fraction that
    additive CCD allows on a pair list that holds every pair able to meet on the move; then
    backtracking on the merit  Phi(alpha) = E(x + alpha d) - E(x) - W(alpha),  E the
@@ -42,6 +47,8 @@ import scipy.sparse.linalg as spla
 from .. import assembly, tangent
 from ..contact import ccd
 from ..contact.barrier import ee_energies, pt_energies
+from ..contact.ipc_distance import (edge_edge_cross2, edge_edge_distance2, mollifier,
+                                    point_triangle_distance2)
 from ..contact.ipc_pairs import BarrierTopology, build_pairs, pair_distances2
 from ..checks import FOLD_DEG
 from ..errors import ParameterError
@@ -49,7 +56,7 @@ from .base import RESULTS, Solution, Stats, check_settings, escape_distance
 
 __all__ = ["BarrierNewton", "solve_barrier", "CHUNK"]
 
-CHUNK = 2048
+CHUNK = 512
 
 
 @dataclasses.dataclass(frozen=True)
@@ -60,9 +67,9 @@ class BarrierNewton:
     largest move of any node in one step.  ccd_s: the fraction of each pair's gap that one
     step may close at most is 1 - ccd_s.  tau0: first pseudo-time step (dimensionless,
     relative to diag(K)).  armijo: sufficient-decrease constant of the line search.
-    krylov_below: below this relative residual the direction solves the exact Jacobian
-    by GMRES (relative tolerance krylov_rtol, at most krylov_iters products),
-    preconditioned by the projected factor."""
+    exact_below: below this relative residual the first direction tried is Newton's on
+    the exact Jacobian (undamped), solved by GMRES (relative tolerance krylov_rtol,
+    at most krylov_iters products) preconditioned by the projected factor."""
 
     rtol: float = 1e-6
     max_steps: int = 300
@@ -71,7 +78,7 @@ class BarrierNewton:
     tau0: float = 1.0
     armijo: float = 1e-4
     max_halvings: int = 30
-    krylov_below: float = 0.05
+    exact_below: float = 0.05
     krylov_rtol: float = 1e-2
     krylov_iters: int = 20
     #: failures after which continuation in pressure cuts the load step
@@ -83,7 +90,7 @@ class BarrierNewton:
         check_settings(self, dict(rtol="positive", max_steps="positive_count",
                                   dx_max="positive", ccd_s="unit", tau0="positive",
                                   armijo="unit", max_halvings="count",
-                                  krylov_below="positive", krylov_rtol="unit",
+                                  exact_below="positive", krylov_rtol="unit",
                                   krylov_iters="positive_count"))
 
 
@@ -109,18 +116,20 @@ def _membrane(x, problem, params, ref):
 
 @jax.jit
 def _triangle_blocks(x, problem, params, ref):
-    """(M, 9, 9): strain Hessian of each triangle projected to PSD, plus the symmetric part
-    of its pressure stiffness, not projected (projecting the sum, or nothing, took more
-    iterations on the benchmark valve: module docstring)."""
+    """Per triangle (M, 9, 9): (projected: the strain Hessian projected to PSD plus the
+    symmetric part of the pressure stiffness, not projected (projecting the sum, or
+    nothing, took more iterations on the benchmark valve); exact: -dF/dx, the strain
+    Hessian minus the pressure load's unsymmetric Jacobian)."""
     H = assembly._element_hessians(x, problem, params, ref)
     J = tangent.pressure_blocks(x, problem, params)
-    return _psd(H) - 0.5 * (J + jnp.swapaxes(J, 1, 2))
+    return _psd(H) - 0.5 * (J + jnp.swapaxes(J, 1, 2)), H - J
 
 
 @jax.jit
 def _hinge_blocks(x, params, ref, hinge_nodes, hinge_tris):
-    """(K, 12, 12) bending Hessians per hinge (`tangent.hinge_hessians`), projected."""
-    return _psd(tangent.hinge_hessians(x, params, ref, hinge_nodes, hinge_tris))
+    """(projected, exact) bending Hessians per hinge (K, 12, 12), `tangent.hinge_hessians`."""
+    H = tangent.hinge_hessians(x, params, ref, hinge_nodes, hinge_tris)
+    return _psd(H), H
 
 
 @jax.jit
@@ -140,7 +149,8 @@ def _pt_blocks(law, x, rows, w):
     def e(x12, wi):
         return pt_energies(law, x12.reshape(4, 3), loc, wi[None])[0]
 
-    return _psd(jax.vmap(jax.hessian(e))(x[rows].reshape(-1, 12), w))
+    H = jax.vmap(jax.hessian(e))(x[rows].reshape(-1, 12), w)
+    return _psd(H), H
 
 
 @jax.jit
@@ -150,30 +160,45 @@ def _ee_blocks(law, x, rows, w, eps):
     def e(x12, wi, ei):
         return ee_energies(law, x12.reshape(4, 3), loc, wi[None], ei[None])[0]
 
-    return _psd(jax.vmap(jax.hessian(e))(x[rows].reshape(-1, 12), w, eps))
+    H = jax.vmap(jax.hessian(e))(x[rows].reshape(-1, 12), w, eps)
+    return _psd(H), H
 
 
-def _membrane_force(x, problem, params, ref):
-    g = jax.grad(_membrane_energy)(x, problem, params, ref)
-    return assembly.pressure_force(x, problem.triangles, params.pressure) - g
+def _normal_blocks(law, s, g, wm):
+    """(P, 12, 12) barrier Hessians along the contact normal only, f''(d) grad d grad d^T,
+    for f(d) = kappa d_hat wm B(d^2 / d_hat^2), from the squared distance s (P,) and its
+    gradient g = grad s (P, 12), with f'' clamped at 0: positive semi-definite by
+    construction, with no eigendecomposition (grad d = g / (2 d))."""
+    dh2 = law.dhat * law.dhat
+    act = (s < dh2) & (wm > 0)
+    z = jnp.where(act, s / dh2, 0.5)
+    b1 = -2.0 * (z - 1.0) * jnp.log(z) - (z - 1.0) ** 2 / z                  # B'(z)
+    b2 = -2.0 * jnp.log(z) - 4.0 * (z - 1.0) / z + (z - 1.0) ** 2 / z ** 2   # B''(z)
+    fdd = 2.0 * b1 / dh2 + 4.0 * z * b2 / dh2             # d^2/dd^2 B(d^2/dh2) at d^2 = s
+    c = jnp.where(act, law.stiffness * law.dhat * wm * jnp.maximum(fdd, 0.0)
+                  / (4.0 * jnp.where(act, s, 1.0)), 0.0)
+    return c[:, None, None] * g[:, :, None] * g[:, None, :]
 
 
 @jax.jit
-def _membrane_jvp(x, v, problem, params, ref):
-    """d(membrane and pressure force)/dx . v (N, 3), the exact (unsymmetric) Jacobian."""
-    return jax.jvp(lambda y: _membrane_force(y, problem, params, ref), (x,), (v,))[1]
+def _pt_normal_blocks(law, x, rows, w):
+    def s_of(x12):
+        q = x12.reshape(4, 3)
+        return point_triangle_distance2(q[0], q[1], q[2], q[3])
+    s, g = jax.vmap(jax.value_and_grad(s_of))(x[rows].reshape(-1, 12))
+    return _normal_blocks(law, s, g, w)
 
 
 @jax.jit
-def _pt_jvp(law, x, v, rows, w):
-    f = lambda y: -jax.grad(lambda z: jnp.sum(pt_energies(law, z, rows, w)))(y)
-    return jax.jvp(f, (x,), (v,))[1]
-
-
-@jax.jit
-def _ee_jvp(law, x, v, rows, w, eps):
-    f = lambda y: -jax.grad(lambda z: jnp.sum(ee_energies(law, z, rows, w, eps)))(y)
-    return jax.jvp(f, (x,), (v,))[1]
+def _ee_normal_blocks(law, x, rows, w, eps):
+    def s_of(x12):
+        q = x12.reshape(4, 3)
+        return edge_edge_distance2(q[0], q[1], q[2], q[3])
+    s, g = jax.vmap(jax.value_and_grad(s_of))(x[rows].reshape(-1, 12))
+    q = x[rows]
+    m = mollifier(edge_edge_cross2(q[:, 0], q[:, 1], q[:, 2], q[:, 3]),
+                  jnp.where(w > 0, eps, 1.0))
+    return _normal_blocks(law, s, g, w * m)
 
 
 def _chunks(*arrays):
@@ -209,28 +234,53 @@ class _Model:
         self._static = self.asm.pattern([np.asarray(problem.triangles), hinges])
         self.n = self.free.shape[0]
 
-    def tangent(self, x, pairs):
+    def tangent(self, x, pairs, exact=False):
         """Projected tangent (nf, nf) CSR over the free dofs at x, with the pair list.
+
+        Without ``exact``, the barrier's part is its Hessian along the contact normals
+        (`_normal_blocks`: no eigendecomposition; on the benchmark valve the same steps as
+        the projected pair Hessians while the residual is above 0.05, in half the time).
+        With ``exact``: the pair (projected, exact), the projected one with the pairs'
+        full Hessians projected to PSD, the exact one -dF/dx of the total force
+        (unsymmetric: the follower pressure) from the same element Hessians; near
+        equilibrium the normal-only model stalled GMRES (a residual of 1.5e-3 after 100
+        steps where the full one converges in 20).
 
         Each kernel holds one batched eigendecomposition and is waited for before the next
         starts: a program with two of them (LAPACK calls that XLA's CPU runtime may run
         at the same time) hung in a futex wait after 40-120 calls (jaxlib 0.10.1)."""
         xj = jnp.asarray(x)
-        tb = np.asarray(_triangle_blocks(xj, self.problem, self.params, self.ref))
-        hb = (np.asarray(_hinge_blocks(xj, self.params, self.ref, self.hinge_nodes,
-                                       self.hinge_tris))
-              if self.bends else np.zeros((0, 12, 12)))
-        K = self._static.matrix([tb, hb])
-        blocks, nodes = [], []
+        tp, te = map(np.asarray, _triangle_blocks(xj, self.problem, self.params, self.ref))
+        if self.bends:
+            hp, he = map(np.asarray, _hinge_blocks(xj, self.params, self.ref,
+                                                   self.hinge_nodes, self.hinge_tris))
+        else:
+            hp = he = np.zeros((0, 12, 12))
+        proj, full, nodes = [], [], []
         for s, k, (rows, w) in _chunks(pairs.pt, pairs.pt_w):
-            blocks.append(np.asarray(_pt_blocks(self.law, xj, rows, w))[:k])
+            if exact:
+                bp, be = _pt_blocks(self.law, xj, rows, w)
+                full.append(np.asarray(be)[:k])
+            else:
+                bp = _pt_normal_blocks(self.law, xj, rows, w)
+            proj.append(np.asarray(bp)[:k])
             nodes.append(pairs.pt[s:s + k])
         for s, k, (rows, w, eps) in _chunks(pairs.ee, pairs.ee_w, pairs.ee_eps):
-            blocks.append(np.asarray(_ee_blocks(self.law, xj, rows, w, eps))[:k])
+            if exact:
+                bp, be = _ee_blocks(self.law, xj, rows, w, eps)
+                full.append(np.asarray(be)[:k])
+            else:
+                bp = _ee_normal_blocks(self.law, xj, rows, w, eps)
+            proj.append(np.asarray(bp)[:k])
             nodes.append(pairs.ee[s:s + k])
-        if blocks:
-            K = K + self.asm.coo(np.concatenate(blocks), np.concatenate(nodes))
-        return K
+
+        def assemble(tb, hb, pb):
+            K = self._static.matrix([tb, hb])
+            if pb:
+                K = K + self.asm.coo(np.concatenate(pb), np.concatenate(nodes))
+            return K
+        K = assemble(tp, hp, proj)
+        return (K, assemble(te, he, full)) if exact else K
 
     def evaluate(self, x, pairs):
         """(conservative energy N mm, total force (N, 3) on free nodes, pressure force
@@ -247,16 +297,6 @@ class _Model:
         fp = np.asarray(fp)
         F = (fp - g) * self.free[:, None]
         return e, F, fp
-
-    def jacobian_vp(self, x, v, pairs):
-        """dF/dx . v (N, 3) at x, with the pair list (the exact Jacobian of the force)."""
-        xj, vj = jnp.asarray(x), jnp.asarray(v)
-        out = np.asarray(_membrane_jvp(xj, vj, self.problem, self.params, self.ref))
-        for _, _, (rows, w) in _chunks(pairs.pt, pairs.pt_w):
-            out = out + np.asarray(_pt_jvp(self.law, xj, vj, rows, w))
-        for _, _, (rows, w, eps) in _chunks(pairs.ee, pairs.ee_w, pairs.ee_eps):
-            out = out + np.asarray(_ee_jvp(self.law, xj, vj, rows, w, eps))
-        return out * self.free[:, None]
 
     def pressure(self, x):
         """Follower pressure force (N, 3) at x."""
@@ -289,27 +329,25 @@ def _admissible(x, problem, params, ref):
     return ok
 
 
-def _krylov(model, x, pairs, free, shape, lu, rhs, guess, solver):
-    """GMRES on the exact Jacobian J, preconditioned by the projected factor ``lu``, from
-    ``guess``: the direction d (free dofs), or None where it is not finite.  GMRES's own
-    convergence flag is not a test of d: along the coapted leaflets' sliding mode the
-    projected factor is nearly singular, and GMRES reports failure (a preconditioned
-    residual stuck at 0.25) for directions whose true residual ||J d - F|| / ||F|| is
-    4e-3 and whose step halves the force residual (the Table 4 cell E1 = 0.05, E2 = 0.569
-    MPa at 40 mmHg).  Its line search is the test; the projected direction follows where
-    it fails."""
-    def mv(v):
-        full = np.zeros_like(x)
-        full[free] = v.reshape(-1, 3)
-        return -model.jacobian_vp(x, full, pairs)[free].reshape(-1)
-    J = spla.LinearOperator(shape, matvec=mv, dtype=float)
-    M = spla.LinearOperator(shape, matvec=lu.solve, dtype=float)
+def _krylov(J, lu, rhs, guess, solver):
+    """GMRES on the exact Jacobian J (assembled, `_Model.tangent`), preconditioned by the
+    projected factor ``lu``, from ``guess``: the direction d (free dofs), or None where it
+    is not finite.  GMRES's own convergence flag is not a test of d: along the coapted
+    leaflets' sliding mode the projected factor is nearly singular, and GMRES reports
+    failure (a preconditioned residual stuck at 0.25) for directions whose true residual
+    ||J d - F|| / ||F|| is 4e-3 and whose step halves the force residual (the Table 4
+    cell E1 = 0.05, E2 = 0.569 MPa at 40 mmHg).  Its line search is the test; the
+    projected direction follows where it fails.  The inexact solve matters: Newton's
+    direction on the exact Jacobian, solved exactly, needed backtracking to 0.01-0.3 from
+    relative residuals of 4e-2 to 5e-3 on the benchmark valve and stalled at 4e-3, where
+    this one converges in 19 steps."""
+    M = spla.LinearOperator(J.shape, matvec=lu.solve, dtype=float)
     dk, _ = spla.gmres(J, rhs, x0=guess, M=M, rtol=solver.krylov_rtol,
                        restart=solver.krylov_iters, maxiter=1)
     return dk if np.all(np.isfinite(dk)) else None
 
 
-def _line_search(model, topo, x, d, E, fp, res, scale, slope, krylov, dhat, solver):
+def _line_search(model, topo, x, d, E, fp, res, scale, slope, exact, dhat, solver):
     """Step length along d (N, 3): at most ``dx_max`` for any node, the CCD bound, then
     halving until the merit falls enough (or, for a Newton-Krylov direction, the
     residual).  Returns (accepted, alpha, a0, ccd fraction, (x, pairs, E, F, fp, res) at
@@ -335,7 +373,7 @@ def _line_search(model, topo, x, d, E, fp, res, scale, slope, krylov, dhat, solv
             phi = En - E - W
             res_n = float(np.linalg.norm(Fn)) / scale
             if (phi <= -solver.armijo * alpha * slope
-                    or (krylov and res_n < (1.0 - solver.armijo * alpha) * res)):
+                    or (exact and res_n < (1.0 - solver.armijo * alpha) * res)):
                 return True, alpha, a0, t, (xn, trial, En, Fn, fpn, res_n), evals
         alpha *= 0.5
     return False, alpha, a0, t, None, evals
@@ -395,12 +433,15 @@ def solve_barrier(problem, params, x0, solver: BarrierNewton, topo: BarrierTopol
             break
         if n == solver.max_steps:
             break
-        K = model.tangent(x, pairs)
+        near_eq = res < solver.exact_below
+        K = model.tangent(x, pairs, exact=near_eq)
+        K, Kx = K if near_eq else (K, None)
         diag = K.diagonal()
-        A = K + sp.diags(np.maximum(diag, 1e-12 * max(diag.max(), 1e-300)) / tau)
+        damp = sp.diags(np.maximum(diag, 1e-12 * max(diag.max(), 1e-300)) / tau)
         rhs = F[free].reshape(-1)
+        A = (K + damp).tocsc()
         try:
-            lu = spla.splu(A.tocsc(), permc_spec="MMD_AT_PLUS_A")
+            lu = spla.splu(A, permc_spec="MMD_AT_PLUS_A")
         except RuntimeError:      # singular: shorten the pseudo-time step and retry
             tau *= 0.1
             continue
@@ -411,20 +452,20 @@ def solve_barrier(problem, params, x0, solver: BarrierNewton, topo: BarrierTopol
         # model), and which takes over where the exact Jacobian's step fails its line
         # search (a nearly singular Jacobian: the coapted leaflets' sliding mode)
         directions = []
-        if res < solver.krylov_below:
-            dk = _krylov(model, x, pairs, free, A.shape, lu, rhs, dproj, solver)
+        if near_eq:
+            dk = _krylov(Kx, lu, rhs, dproj, solver)
             if dk is not None:
                 directions.append((dk, True))
         directions.append((dproj, False))
         accepted, alpha = False, 0.0
-        for dfree, krylov in directions:
+        for dfree, exact in directions:
             d = np.zeros_like(x)
             d[free] = dfree.reshape(-1, 3)
             slope = float(rhs @ dfree)            # -dPhi/dalpha at 0 (> 0: descent)
-            if not slope > 0 and not krylov:      # indefinite: more pseudo-time damping
+            if not slope > 0 and not exact:       # indefinite: more pseudo-time damping
                 continue
             accepted, alpha, a0, t, trial_out, n_ev = _line_search(
-                model, topo, x, d, E, fp, res, scale, slope, krylov, dhat, solver)
+                model, topo, x, d, E, fp, res, scale, slope, exact, dhat, solver)
             evals += n_ev
             log.ccd.append(t)
             if accepted:
