@@ -17,7 +17,7 @@ import numpy as np
 
 from . import valve as V
 from .coaptation import annulus_level, coaptation_metrics
-from .continuation import cut_on, ramp
+from .continuation import Ramp, cut_on, ramp
 from .errors import ConvergenceError
 from .leaflet_mesh import mesh_leaflet
 from .scene import Scene
@@ -281,7 +281,7 @@ def simulate(scene: Scene | None = None, *, progress: Callable[[str], None] | No
         with compile_timer() as ct:
             t0 = time.perf_counter()
             # one solve at p; where it runs away, continuation in pressure from p_prev
-            rr = ramp(close, x, p, p_prev, cut=cut_on(solver))
+            rr = ramp(close, x, p, p_prev, Ramp.for_solver(solver), cut=cut_on(solver))
             sol, p_state = rr.final
             jax.block_until_ready(sol.x)
             wall = time.perf_counter() - t0

@@ -391,7 +391,7 @@ def _ramp_stage(valve, scene, p, x0, p_start):
     is bisected from the last equilibrium, so a load past the membrane's inflation limit
     ends as ``limit_point`` with the equilibrium at the highest pressure found.  A closure
     that converges at p is one `_solve_stage`, as before.  ``steps`` counts every solve."""
-    from .continuation import cut_on, ramp
+    from .continuation import Ramp, cut_on, ramp
     notes = {}
 
     def solve(q, x):
@@ -399,7 +399,9 @@ def _ramp_stage(valve, scene, p, x0, p_start):
         notes[q] = note
         return sol
 
-    rr = ramp(solve, np.asarray(x0, float), p, p_start, cut=cut_on(scene.make_solver()))
+    solver = scene.make_solver()
+    rr = ramp(solve, np.asarray(x0, float), p, p_start, Ramp.for_solver(solver),
+              cut=cut_on(solver))
     sol, q = rr.final
     sol = dataclasses.replace(sol, stats=dataclasses.replace(sol.stats, steps=rr.steps))
     return sol, np.asarray(sol.x).astype(np.float64), notes.get(q, ""), rr

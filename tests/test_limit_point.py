@@ -198,3 +198,21 @@ def test_a_solver_may_declare_its_step_cap_a_load_step_too_long():
     s = Capped(reach=25.0)
     out = ramp(s, np.array([3.0]), 80.0, 3.0, cut=cut_on(FIRE()))
     assert out.status == "max_steps_reached" and s.tried == [80.0]
+
+
+def test_a_ramp_ends_when_its_step_budget_is_spent():
+    """`Ramp.max_steps` bounds the solver steps of a ramp that creeps up (each solve 10
+    steps here): it ends after the first failed solve past the budget, with that failure
+    and the highest equilibrium reached; a ramp that converges within it is unchanged."""
+    from jaxvalve.solvers import BarrierNewton
+    s = _Stalls(reach=0.1)
+    out = ramp(s, np.array([3.0]), 80.0, 3.0, Ramp(max_steps=55))
+    assert out.status == "stagnation" and not out.converged and not out.limit_point
+    assert 55 <= out.steps < 55 + 2 * 10 and len(s.tried) == out.steps // 10 < 30
+    assert out.pressure == 3.0 and out.final[1] == s.tried[-1] == 3.0 + 77.0 / 2**5
+    s = _Stalls(reach=25.0)
+    assert ramp(s, np.array([3.0]), 80.0, 3.0, Ramp(max_steps=70)).converged
+    assert Ramp.for_solver(BarrierNewton(max_steps=200)).max_steps == 2000
+    assert Ramp.for_solver(object()).max_steps is None
+    with pytest.raises(ParameterError, match="max_steps"):
+        Ramp(max_steps=0)
