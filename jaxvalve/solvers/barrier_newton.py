@@ -67,6 +67,9 @@ class BarrierNewton:
     largest move of any node in one step.  ccd_s: the fraction of each pair's gap that one
     step may close at most is 1 - ccd_s.  tau0: first pseudo-time step (dimensionless,
     relative to diag(K)).  armijo: sufficient-decrease constant of the line search.
+    max_pushes: a converged state is checked for stability (`lowest_modes`); an unstable
+    one is pushed along its unstable mode and the solve goes on, at most max_pushes
+    times (0: no check).
     exact_below: below this relative residual the first direction tried is Newton's on
     the exact Jacobian (undamped), solved by GMRES (relative tolerance krylov_rtol,
     at most krylov_iters products) preconditioned by the projected factor."""
@@ -81,6 +84,9 @@ class BarrierNewton:
     exact_below: float = 0.05
     krylov_rtol: float = 1e-2
     krylov_iters: int = 20
+    #: pushes off an unstable equilibrium before the solve ends as `RESULTS.unstable`
+    #: (0: no stability check)
+    max_pushes: int = 10
     #: failures after which continuation in pressure cuts the load step
     #: (`jaxvalve.continuation.cut_on`): Newton converges in tens of iterations from a
     #: near enough start, so a solve still short of rtol at its cap had too long a step
@@ -91,7 +97,7 @@ class BarrierNewton:
                                   dx_max="positive", ccd_s="unit", tau0="positive",
                                   armijo="unit", max_halvings="count",
                                   exact_below="positive", krylov_rtol="unit",
-                                  krylov_iters="positive_count"))
+                                  krylov_iters="positive_count", max_pushes="count"))
 
 
 # ------------------------------------------------------------------ jitted kernels
@@ -379,6 +385,44 @@ def _line_search(model, topo, x, d, E, fp, res, scale, slope, exact, dhat, solve
     return False, alpha, a0, t, None, evals
 
 
+def lowest_modes(model, x, pairs, k=12):
+    """(lowest real part of an eigenvalue of the exact Jacobian -dF/dx at x (N/mm), its
+    mode (N, 3) real, unit largest node move) or (None, None) where ARPACK fails.
+
+    Shift-invert about sigma = -0.1 max diag(K), K the projected tangent: every
+    eigenvalue in (2 sigma, 0) is nearer the shift than any positive one, so the k
+    nearest hold the negative ones first (0.1 s on the benchmark valve).  The mode is
+    that of the lowest; a complex pair gives its real part.  An equilibrium whose lowest
+    eigenvalue is negative is not stable: a closing valve passes through it, it does not
+    settle there (two closed states of the Table 4 cell E1 = 0.106, E2 = 0.7 MPa: the
+    one a solver reached had an eigenvalue -0.024, the other none below +1.4e-4)."""
+    K, Kx = model.tangent(x, pairs, exact=True)
+    sigma = -0.1 * float(np.abs(K.diagonal()).max())
+    try:
+        w, V = spla.eigs(Kx.tocsc(), k=min(k, Kx.shape[0] - 2), sigma=sigma, which="LM")
+    except (spla.ArpackNoConvergence, RuntimeError, ValueError):
+        return None, None
+    i = int(np.argmin(w.real))
+    v = np.zeros_like(x)
+    v[model.free] = np.real(V[:, i]).reshape(-1, 3)
+    big = float(np.max(np.linalg.norm(v, axis=1)))
+    return float(w[i].real), (v / big if big > 0 else v)
+
+
+def _push(model, topo, x, v, E, fp, res, scale, dhat, solver):
+    """The state pushed off an unstable equilibrium x along its mode v (N, 3) (unit
+    largest node move) by at most ``dx_max``, with the same CCD bound and admissibility
+    as every step: (x, pairs, E, F, fp, res), or None where neither side lowers the
+    merit.  At an equilibrium the merit's slope is zero, so the line search accepts the
+    first admissible state of lower merit; +v is tried first, then -v."""
+    for sign in (1.0, -1.0):
+        ok, _, _, _, out, _ = _line_search(model, topo, x, sign * v, E, fp, res, scale,
+                                           0.0, False, dhat, solver)
+        if ok:
+            return out
+    return None
+
+
 # ------------------------------------------------------------------ the solve
 @dataclasses.dataclass
 class BarrierLog:
@@ -390,6 +434,8 @@ class BarrierLog:
     pairs: list = dataclasses.field(default_factory=list)
     min_gap: list = dataclasses.field(default_factory=list)
     tau: list = dataclasses.field(default_factory=list)
+    #: (iteration, lowest real eigenvalue of the exact Jacobian) at each converged state
+    stability: list = dataclasses.field(default_factory=list)
 
 
 def solve_barrier(problem, params, x0, solver: BarrierNewton, topo: BarrierTopology,
@@ -430,7 +476,22 @@ def solve_barrier(problem, params, x0, solver: BarrierNewton, topo: BarrierTopol
             break
         if res < solver.rtol:
             result = RESULTS.successful
-            break
+            if solver.max_pushes == 0:
+                break
+            lam, vec = lowest_modes(model, x, pairs)
+            log.stability.append((n, lam))
+            if lam is None or lam >= 0.0:
+                break
+            if len(log.stability) > solver.max_pushes:
+                result = RESULTS.unstable
+                break
+            pushed = _push(model, topo, x, vec, E, fp, res, scale, dhat, solver)
+            if pushed is None:
+                result = RESULTS.unstable
+                break
+            x, pairs, E, F, fp, res = pushed
+            tau = solver.tau0
+            continue
         if n == solver.max_steps:
             break
         near_eq = res < solver.exact_below

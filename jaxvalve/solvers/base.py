@@ -31,6 +31,7 @@ class RESULTS(enum.IntEnum):
     # 6 and 7 were valve state checks; they are `jaxvalve.valve.STATE_FAILURES` now
     escaped = 8            # a node moved farther than the structure's size from the start
     inconsistent = 9       # the loop said converged; an independent evaluation disagrees
+    unstable = 10          # converged to an equilibrium that is not stable
 
     @property
     def message(self):
@@ -51,6 +52,10 @@ _MESSAGES = {
                            "independent evaluation of its result disagrees (residual, stretch "
                            "check or finiteness), also after recompiling: a wrong compiled "
                            "program, not an equilibrium"),
+    RESULTS.unstable: ("the solve reached an equilibrium that is not stable (its exact "
+                       "Jacobian has an eigenvalue of negative real part), and pushes "
+                       "along that mode found no stable one: a state no closing valve "
+                       "settles in"),
 }
 
 

@@ -1,0 +1,56 @@
+"""Stability of a converged equilibrium (`barrier_newton.lowest_modes`) and the push off an
+unstable one: a flat clamped disk compressed in its plane is an equilibrium that buckles
+out of plane (a negative eigenvalue, its mode out of plane); stretched, it is stable; the
+solve pushes the compressed disk off its flat state and ends at a buckled, stable one."""
+import numpy as np
+import pytest
+
+from jaxvalve import meshgen
+from jaxvalve.bending import Bending
+from jaxvalve.contact.barrier import BarrierContact
+from jaxvalve.contact.ipc_pairs import barrier_topology, build_pairs
+from jaxvalve.materials import StVenantKirchhoff
+from jaxvalve.problem import Params, make_problem
+from jaxvalve.solvers import RESULTS, BarrierNewton, solve_barrier
+from jaxvalve.solvers.barrier_newton import _Model, lowest_modes
+
+R = 5.0
+
+
+def _disk(scale):
+    """(problem, params, topology, x): a clamped disk of radius R mm, flat, with its
+    reference ``scale`` times the placed size (> 1: compressed in its plane)."""
+    p, t, edge = meshgen.disk(R, 4)
+    prob, ref = make_problem(scale * p, t, fixed=edge)
+    params = Params(ref=ref, material=StVenantKirchhoff(1.0, 0.45), thickness=0.1, pressure=0.0,
+                    contact=BarrierContact(), bending=Bending())
+    x = np.asarray(meshgen.lift(p), float)
+    topo = barrier_topology(t, np.zeros(len(p), int), scale * p, edge, x)
+    return prob, params, topo, x
+
+
+@pytest.mark.parametrize("scale, stable", [(1.02, False), (0.98, True)])
+def test_a_compressed_flat_disk_is_an_unstable_equilibrium_and_a_stretched_one_stable(
+        scale, stable):
+    prob, params, topo, x = _disk(scale)
+    model = _Model(prob, params, topo)
+    pairs = build_pairs(topo, x, float(params.contact.dhat))
+    E, F, _ = model.evaluate(x, pairs)
+    assert np.abs(F).max() < 1e-12                       # flat and uniform: in equilibrium
+    lam, v = lowest_modes(model, x, pairs)
+    assert (lam > 0) == stable, lam
+    if not stable:                                       # the buckling mode is out of plane
+        assert np.abs(v[:, 2]).max() == pytest.approx(1.0)
+        assert np.abs(v[:, :2]).max() < 1e-6
+
+
+def test_the_solve_pushes_off_an_unstable_equilibrium_to_a_stable_one():
+    prob, params, topo, x = _disk(1.02)
+    sol, log = solve_barrier(prob, params, x, BarrierNewton(rtol=1e-8, max_steps=300), topo)
+    assert int(sol.result) == RESULTS.successful, sol.describe()
+    assert log.stability[0][1] < 0 <= log.stability[-1][1]
+    assert np.abs(np.asarray(sol.x)[:, 2]).max() > 0.1          # buckled out of plane
+    # without the check the flat state is returned as it is
+    sol0, log0 = solve_barrier(prob, params, x, BarrierNewton(max_pushes=0), topo)
+    assert int(sol0.result) == RESULTS.successful and not log0.stability
+    assert np.abs(np.asarray(sol0.x)[:, 2]).max() == 0.0
