@@ -25,7 +25,9 @@ contact (`jaxvalve.contact.ccd`), so the leaflets can never cross.  Each step:
    without an edge folded past 150 degrees (the bound of `jaxvalve.checks`: without it,
    long steps on coarse or soft leaflets jumped into creased states, a discretisation
    artefact the state check rejects).
-4. Stop when ||F_free|| / ||F_pressure|| < rtol, or with `RESULTS.escaped` once a node has
+4. Stop when ||F_free|| / ||F_pressure|| < rtol at a stable state (`lowest_modes`: an
+   unstable equilibrium is pushed off along its mode, at most ``max_pushes`` times, then
+   `RESULTS.unstable`), or with `RESULTS.escaped` once a node has
    moved farther than the start state's diameter (past a limit point the merit has no
    minimum and each step moves ``dx_max``; `jaxvalve.continuation` takes it from there).
 
