@@ -50,6 +50,9 @@ def test_the_solve_pushes_off_an_unstable_equilibrium_to_a_stable_one():
     assert int(sol.result) == RESULTS.successful, sol.describe()
     assert log.stability[0][1] < 0 <= log.stability[-1][1]
     assert np.abs(np.asarray(sol.x)[:, 2]).max() > 0.1          # buckled out of plane
+    # a pushed state is not an equilibrium: with too few steps left it is not converged
+    short, _ = solve_barrier(prob, params, x, BarrierNewton(rtol=1e-8, max_steps=3), topo)
+    assert int(short.result) == RESULTS.max_steps_reached, short.describe()
     # without the check the flat state is returned as it is
     sol0, log0 = solve_barrier(prob, params, x, BarrierNewton(max_pushes=0), topo)
     assert int(sol0.result) == RESULTS.successful and not log0.stability

@@ -492,7 +492,7 @@ def solve_barrier(problem, params, x0, solver: BarrierNewton, topo: BarrierTopol
                 result = RESULTS.unstable
                 break
             x, pairs, E, F, fp, res = pushed
-            tau = solver.tau0
+            tau, result = solver.tau0, RESULTS.max_steps_reached    # not converged again yet
             continue
         if n == solver.max_steps:
             break
