@@ -401,14 +401,17 @@ def lowest_modes(model, x, pairs, k=12):
     K, Kx = model.tangent(x, pairs, exact=True)
     sigma = -0.1 * float(np.abs(K.diagonal()).max())
     try:
-        w, V = spla.eigs(Kx.tocsc(), k=min(k, Kx.shape[0] - 2), sigma=sigma, which="LM")
+        n = Kx.shape[0]      # a fixed start vector: ARPACK's random one made pushes random
+        w, V = spla.eigs(Kx.tocsc(), k=min(k, n - 2), sigma=sigma, which="LM",
+                         v0=np.full(n, 1.0 / np.sqrt(n)))
     except (spla.ArpackNoConvergence, RuntimeError, ValueError):
         return None, None
     i = int(np.argmin(w.real))
     v = np.zeros_like(x)
     v[model.free] = np.real(V[:, i]).reshape(-1, 3)
     big = float(np.max(np.linalg.norm(v, axis=1)))
-    return float(w[i].real), (v / big if big > 0 else v)
+    j = np.unravel_index(np.argmax(np.abs(v)), v.shape)        # a sign of its own
+    return float(w[i].real), (np.sign(v[j]) * v / big if big > 0 else v)
 
 
 def _push(model, topo, x, v, E, fp, res, scale, dhat, solver):
@@ -464,6 +467,7 @@ def solve_barrier(problem, params, x0, solver: BarrierNewton, topo: BarrierTopol
     log = BarrierLog()
     x_start, escape = x.copy(), float(escape_distance(x))
     tau = solver.tau0
+    pushed = False        # since a push: every step must lower the merit (below)
     result = RESULTS.max_steps_reached
     n = 0
     free = model.free
@@ -493,6 +497,7 @@ def solve_barrier(problem, params, x0, solver: BarrierNewton, topo: BarrierTopol
                 break
             x, pairs, E, F, fp, res = pushed
             tau, result = solver.tau0, RESULTS.max_steps_reached    # not converged again yet
+            pushed = True
             continue
         if n == solver.max_steps:
             break
@@ -525,10 +530,15 @@ def solve_barrier(problem, params, x0, solver: BarrierNewton, topo: BarrierTopol
             d = np.zeros_like(x)
             d[free] = dfree.reshape(-1, 3)
             slope = float(rhs @ dfree)            # -dPhi/dalpha at 0 (> 0: descent)
-            if not slope > 0 and not exact:       # indefinite: more pseudo-time damping
+            # a Newton-Krylov step may also be accepted where it lowers the residual, but
+            # not after a push off an unstable equilibrium: the exact Jacobian's step
+            # heads for the nearest root, the saddle too, and only the merit falls away
+            # from it (a compressed disk went from saddle to saddle six times otherwise)
+            by_residual = exact and not pushed
+            if not slope > 0 and not by_residual:   # indefinite: more pseudo-time damping
                 continue
             accepted, alpha, a0, t, trial_out, n_ev = _line_search(
-                model, topo, x, d, E, fp, res, scale, slope, exact, dhat, solver)
+                model, topo, x, d, E, fp, res, scale, slope, by_residual, dhat, solver)
             evals += n_ev
             log.ccd.append(t)
             if accepted:
