@@ -46,16 +46,18 @@ def test_a_compressed_flat_disk_is_an_unstable_equilibrium_and_a_stretched_one_s
 
 def test_the_solve_pushes_off_an_unstable_equilibrium_to_a_stable_one():
     prob, params, topo, x = _disk(1.02)
-    sol, log = solve_barrier(prob, params, x, BarrierNewton(rtol=1e-8, max_steps=300), topo)
+    sol, log = solve_barrier(prob, params, x,
+                             BarrierNewton(rtol=1e-8, max_steps=300, max_pushes=10), topo)
     assert int(sol.result) == RESULTS.successful, (sol.describe(), log.stability)
     # one push: after it every step lowers the merit, away from the saddle (with the
     # residual test for Newton-Krylov steps as well, six pushes went saddle to saddle)
     assert len(log.stability) == 2 and log.stability[0][1] < 0 <= log.stability[1][1]
     assert np.abs(np.asarray(sol.x)[:, 2]).max() > 0.1          # buckled out of plane
     # a pushed state is not an equilibrium: with too few steps left it is not converged
-    short, _ = solve_barrier(prob, params, x, BarrierNewton(rtol=1e-8, max_steps=3), topo)
+    short, _ = solve_barrier(prob, params, x,
+                             BarrierNewton(rtol=1e-8, max_steps=3, max_pushes=10), topo)
     assert int(short.result) == RESULTS.max_steps_reached, short.describe()
-    # without the check the flat state is returned as it is
-    sol0, log0 = solve_barrier(prob, params, x, BarrierNewton(max_pushes=0), topo)
+    # without the check (the default) the flat state is returned as it is
+    sol0, log0 = solve_barrier(prob, params, x, BarrierNewton(), topo)
     assert int(sol0.result) == RESULTS.successful and not log0.stability
     assert np.abs(np.asarray(sol0.x)[:, 2]).max() == 0.0
