@@ -5,8 +5,13 @@ of one model (one pytree structure: `StVenantKirchhoff`, `NeoHookean`, `Gent` or
 `MassSpring` with the same fields set).  The two closures of `simulate` (at
 ``scene.he_pressure`` from the valve's start, then at ``scene.pressure`` from that state)
 run for all members under `jax.vmap`, inside ONE `jax.jit`; every material float is a
-traced input, so a second batch of the same size and model does not recompile.  The sharp
-coaptation metrics are then measured per member on the host (NumPy), as `simulate` does.
+traced input, so a second batch of the same size and model does not recompile.  Each
+member's outcome then goes through the one closure driver (`jaxvalve.closure.close_valve`,
+with the batched solves as its first attempts): the state check, continuation in pressure
+for a member that ran away, the stall probe for one stopped at its step cap, so that a
+member's report is `simulate`'s.  The sharp coaptation metrics are measured per member on
+the host (NumPy), as `simulate` does.  On the barrier path (a host-loop Newton solver)
+there is no batched program: the driver closes the members one after the other.
 
 The solver loop (`lax.while_loop` under vmap) runs until every member has finished and
 keeps a finished member's state.  The decisions inside it (pair-list rebuilds, the contact
@@ -55,13 +60,13 @@ from .materials import Material
 from .problem import mmhg, validate_params
 from .scene import Scene
 from . import valve as V
-from .simulation import _quiet, build_scene_valve, compile_timer, measure
-from .solvers import RESULTS, Stats, iterate
+from .simulation import _quiet, build_scene_valve, measure
+from .timing import compile_timer
+from .closure import close_valve
+from .solvers import RESULTS, Solution, Stats, iterate
 from .solvers.base import relative_residual
-from .stall import closure_cause
 
-__all__ = ["simulate_batch", "BatchResult", "BatchMember", "MemberSolve", "stack_materials",
-           "METRICS"]
+__all__ = ["simulate_batch", "BatchResult", "BatchMember", "stack_materials", "METRICS"]
 
 #: The headline metrics of a member (keys of `BatchMember.summary`), mm and %.
 METRICS = ("h_E", "h_CC", "h_avr", "NCCA_pct", "h", "h_c")
@@ -155,29 +160,13 @@ def _parameters(mat) -> dict:
 
 # ------------------------------------------------------------------------------ results
 @dataclasses.dataclass(frozen=True)
-class MemberSolve:
-    """One member's solve at one load: pressure (mmHg), result name (`RESULTS`),
-    converged, steps and relative residual ||F_free|| / ||F_pressure||; cause: for a
-    solve stopped at its step cap, whether the force jumps there (`jaxvalve.stall`)."""
-
-    pressure: float
-    result: str
-    converged: bool
-    steps: int
-    residual: float
-    cause: str | None = None
-
-    def as_dict(self):
-        return dataclasses.asdict(self)
-
-
-@dataclasses.dataclass(frozen=True)
 class BatchMember:
     """One member of a batch: its material, closed states, metrics and solve reports.
 
     x, x_he (N, 3) mm: closed at ``pressure`` and at ``he_pressure``.  metrics,
     metrics_he: `CoaptationResult` (None where the state is not finite).
-    solves: (`MemberSolve` at he_pressure, `MemberSolve` at pressure)."""
+    solves: (`SolveReport` at he_pressure, `SolveReport` at pressure), as `simulate`'s
+    (their wall times count only a member's own continuation solves, not the batch)."""
 
     index: int
     model: str
@@ -225,8 +214,9 @@ class BatchResult:
     scene: the `Scene` (geometry, loads, solver; its material fields are not used).
     valve: the `Valve`.  model: the materials' model name.  members: `BatchMember` each.
     timings (s): 'setup' (root, mesh, placement; 0 with a prebuilt valve), 'compile' and
-    'solve' (the batched call: JAX's compile time and the rest of its wall time),
-    'metrics' (host), 'total', 'per_scene' (solve / members), 'retries' (capacity
+    'solve' (the batched call and the members' own continuation or barrier solves: JAX's
+    compile time and the rest of their wall time), 'metrics' (host: the state checks,
+    stall probes and coaptation metrics), 'total', 'per_scene' (solve / members), 'retries' (capacity
     retries of overflowing members).  vectorized: how the steps ran (`simulate_batch`)."""
 
     scene: Scene
@@ -429,6 +419,24 @@ def _run_batch(members, stacked, valve, base, pressures, solver, skin, loop, say
     return stages, compile_s, wall_s, retries
 
 
+def _first_attempts(valve, stages, i) -> tuple:
+    """Member i's first attempt at each load, from the batched program, as state-checked
+    `ValveSolution`s (a state that is not finite has result ``nonfinite``)."""
+    out = []
+    for st in stages:
+        x = np.asarray(st["x"][i])
+        code = int(st["result"][i]) if np.all(np.isfinite(x)) else int(RESULTS.nonfinite)
+        stats = Stats(steps=int(st["steps"][i]), force_evals=0, hvps=0,
+                      residual=float(st["residual"][i]))
+        out.append(V.checked(valve, Solution(x=x, result=np.asarray(code), stats=stats)))
+    return tuple(out)
+
+
+def _member_say(say, i):
+    """Progress of member i's continuation solves (the driver reports only those)."""
+    return lambda msg: say(f"  member {i}: {msg.strip()}")
+
+
 def simulate_batch(scene: Scene | None = None, materials=None, *, valve=None,
                    progress: Callable[[str], None] | None = None, throw: bool = True,
                    vectorize: bool | None = None, handoff: int | None = None) -> BatchResult:
@@ -490,36 +498,45 @@ def simulate_batch(scene: Scene | None = None, materials=None, *, valve=None,
     say(f"closing {B} member{'s' * (B != 1)} ({model}) at {scene.he_pressure:g} then "
         f"{scene.pressure:g} mmHg in one batch ({scene.solver} solver, {scene.contact} "
         "contact)")
-    stages, compile_s, wall_s, retries = _run_batch(members, stacked, valve, base, pressures,
-                                                    solver, valve.skin, loop, say,
-                                                    handoff=handoff)
-    solve_s = max(wall_s - compile_s, 0.0)
-    n_ok = int(sum(np.all([st["result"] == RESULTS.successful for st in stages], axis=0)))
-    say(f"  {n_ok}/{B} converged; {solve_s:.2f} s (+{compile_s:.1f} s compile), "
-        f"{solve_s / B:.2f} s a member")
+    if scene.contact == "barrier":
+        # the barrier Newton is a host loop (sparse factorisations, CCD on the host): no
+        # batched program; each member is closed in turn by the one closure driver
+        stages, compile_s, wall_s, retries = None, 0.0, 0.0, 0
+    else:
+        stages, compile_s, wall_s, retries = _run_batch(members, stacked, valve, base,
+                                                        pressures, solver, valve.skin, loop,
+                                                        say, handoff=handoff)
+        n_ok = int(sum(np.all([st["result"] == RESULTS.successful for st in stages],
+                              axis=0)))
+        say(f"  {n_ok}/{B} first attempts converged; "
+            f"{max(wall_s - compile_s, 0.0):.2f} s (+{compile_s:.1f} s compile)")
+    t_driver = 0.0
     t0 = time.perf_counter()
     out = []
     for i, mat in enumerate(members):
-        solves, xs, finite = [], [], []
-        for p, st in zip((scene.he_pressure, scene.pressure), stages):
-            x = np.asarray(st["x"][i])
-            ok = bool(np.all(np.isfinite(x)))
-            name = RESULTS(int(st["result"][i])).name if ok else RESULTS.nonfinite.name
-            if name == RESULTS.successful.name:     # crossed leaflets, folded triangles
-                name = V.state_failure(valve, x) or name
-            solves.append(MemberSolve(pressure=float(p), result=name,
-                                      converged=name == RESULTS.successful.name,
-                                      steps=int(st["steps"][i]),
-                                      residual=float(st["residual"][i]),
-                                      cause=closure_cause(valve, scene, mat, name, p, x)))
-            xs.append(x)
-            finite.append(ok)
+        # the batched program's attempts, finished by the one closure driver: the state
+        # check, continuation where a member ran away, the stall probe at a step cap
+        first = () if stages is None else _first_attempts(valve, stages, i)
+        loads = close_valve(valve, scene, material=mat, first=first,
+                            say=say if stages is None else _member_say(say, i))
+        # the member's own solves (continuation, barrier closures) count as solve time;
+        # its state check and stall probe, as the metrics, as host time
+        own = sum(ls.report.wall_s + ls.start_s for ls in loads)
+        wall_s += own
+        t_driver += own
+        compile_s += sum(ls.report.compile_s for ls in loads)
+        xs = [ls.x for ls in loads]
+        finite = [bool(np.all(np.isfinite(x))) for x in xs]
         say(f"measuring coaptation: member {i + 1}/{B}")
         m_he = measure(valve, xs[0], scene.g_c) if finite[0] else None
         m = measure(valve, xs[1], scene.g_c) if finite[1] else None
         out.append(BatchMember(index=i, model=model, material=mat, x=xs[1], x_he=xs[0],
-                               metrics=m, metrics_he=m_he, solves=tuple(solves)))
-    t_m = time.perf_counter() - t0
+                               metrics=m, metrics_he=m_he,
+                               solves=tuple(ls.report for ls in loads)))
+    solve_s = max(wall_s - compile_s, 0.0)
+    say(f"  {sum(m.converged for m in out)}/{B} converged; {solve_s:.2f} s "
+        f"(+{compile_s:.1f} s compile), {solve_s / B:.2f} s a member")
+    t_m = time.perf_counter() - t0 - t_driver
     timings = dict(setup=setup, compile=compile_s, solve=solve_s, metrics=t_m,
                    total=time.perf_counter() - t_all, per_scene=solve_s / B, retries=retries)
     res = BatchResult(scene=scene, valve=valve, model=model, members=tuple(out),

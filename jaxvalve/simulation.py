@@ -2,9 +2,9 @@
 
 Steps (each reported to ``progress``): build the root, mesh the template, place the three
 leaflets, close at the effective-height load (3 mmHg) from the placement, then at the
-diastolic load (80 mmHg) from that state (a two-step continuation in P: both solves share
-one compiled function, since P is a traced parameter), and measure the coaptation
-characteristics (DESIGN.md) on both states.  Returns a `SimulationResult`.
+diastolic load (80 mmHg) from that state (`jaxvalve.closure.close_valve`, the one closure
+driver: both solves share one compiled function, since P is a traced parameter), and
+measure the coaptation characteristics (docs/metrics.md) on both states.  Returns a `SimulationResult`.
 """
 from __future__ import annotations
 
@@ -12,95 +12,17 @@ import dataclasses
 import time
 from typing import Any, Callable
 
-import jax
 import numpy as np
 
 from . import valve as V
+from .closure import SolveReport, close_valve
 from .coaptation import annulus_level, coaptation_metrics
-from .continuation import Ramp, cut_on, ramp
 from .errors import ConvergenceError
 from .leaflet_mesh import mesh_leaflet
 from .scene import Scene
-from .solvers import RESULTS
-from .stall import closure_cause
+from .timing import compile_timer
 
 __all__ = ["simulate", "SimulationResult", "SolveReport", "compile_timer", "measure"]
-
-
-class compile_timer:
-    """Context manager that sums JAX's tracing, lowering and XLA compile durations (s)
-    reported through `jax.monitoring` while it is open."""
-
-    _EVENTS = ("/jax/core/compile/jaxpr_trace_duration",
-               "/jax/core/compile/jaxpr_to_mlir_module_duration",
-               "/jax/core/compile/backend_compile_duration")
-    _active: list = []
-    _registered = False
-
-    def __init__(self):
-        self.seconds = 0.0
-
-    @classmethod
-    def _listener(cls, event, duration, **kw):
-        if event in cls._EVENTS:
-            for t in cls._active:
-                t.seconds += duration
-
-    def __enter__(self):
-        if not compile_timer._registered:
-            jax.monitoring.register_event_duration_secs_listener(compile_timer._listener)
-            compile_timer._registered = True
-        compile_timer._active.append(self)
-        return self
-
-    def __exit__(self, *exc):
-        compile_timer._active.remove(self)
-        return False
-
-
-@dataclasses.dataclass(frozen=True)
-class SolveReport:
-    """One load: pressure (mmHg), result name, converged, steps, relative residual
-    ||F_free|| / ||F_pressure||, wall time (s) and the part of it spent compiling.
-    A load past the valve's limit point has result 'limit_point' and ``limit_pressure``,
-    the highest pressure (mmHg) with an equilibrium, whose state and residual are
-    reported instead (`jaxvalve.continuation`).  state_pressure (mmHg): the pressure of
-    the state reported, where it is not ``pressure`` (a limit point, or a continuation
-    that failed on the way).  cause: for a solve stopped at its step cap, whether the
-    force jumps where it stopped (`jaxvalve.stall`), else None."""
-
-    pressure: float
-    result: str
-    converged: bool
-    steps: int
-    residual: float
-    wall_s: float
-    compile_s: float
-    limit_pressure: float | None = None
-    state_pressure: float | None = None
-    cause: str | None = None
-
-    @property
-    def solve_s(self):
-        """Wall time without compilation (s)."""
-        return max(self.wall_s - self.compile_s, 0.0)
-
-    def describe(self) -> str:
-        """One line: the outcome at this load."""
-        if self.result == "limit_point":
-            return (f"limit_point: no equilibrium above {self.limit_pressure:.3g} mmHg "
-                    f"(state shown at {self.limit_pressure:.3g} mmHg, residual "
-                    f"{self.residual:.2e}, {self.steps} steps)")
-        at = ("" if self.state_pressure in (None, self.pressure)
-              else f" (state at {self.state_pressure:.3g} mmHg)")
-        why = f"; {self.cause}" if self.cause else ""
-        return (f"{'converged' if self.converged else self.result}{at}, residual "
-                f"{self.residual:.2e}, {self.steps} steps{why}")
-
-    def as_dict(self):
-        d = dataclasses.asdict(self)
-        d["solve_s"] = self.solve_s
-        return d
 
 
 @dataclasses.dataclass(frozen=True)
@@ -207,32 +129,6 @@ def build_scene_valve(scene: Scene, say=_quiet):
     return V.build_valve(root, lmesh)
 
 
-def _swing_shut(valve, scene, material, bending, x, say):
-    """The barrier path's start (its time after compilation: ``timings['start']``): the
-    valve swung shut at the lower load by the default path (FIRE on the penalty contact,
-    to a relative residual of at most 1e-4), where that closure converges to a state with
-    no crossing and every barrier distance positive; else ``x`` (the placement).
-    Projected Newton from the open valve meets the fold limit of its line search at once
-    on soft leaflets (Table 4: no progress in 500 iterations), while FIRE's dynamics
-    swing them shut; from FIRE's state, Newton re-settles the valve on the barrier in a
-    few steps.  The final states are equilibria of the barrier law either way."""
-    from .contact.ipc_pairs import build_pairs
-    start = scene.replace(contact="smooth", solver="fire", rtol=max(scene.rtol, 1e-4))
-    say(f"swinging shut at {scene.he_pressure:g} mmHg (fire solver, smooth contact), the "
-        "start of the barrier closures")
-    t0 = time.perf_counter()
-    sol = V.close(valve, material, scene.he_pressure, solver=start.make_solver(),
-                  contact=start.contact_law(), thickness=scene.thickness,
-                  fibre_angle=np.deg2rad(scene.fibre_angle), bending=bending, x0=x,
-                  throw=False, check_state=True)
-    y = np.asarray(sol.x, np.float64)
-    ok = (sol.converged and np.all(np.isfinite(y))
-          and build_pairs(valve.barrier_topology, y, 1.0).min_distance > 0)
-    say(f"  {sol.describe()}; {time.perf_counter() - t0:.2f} s"
-        + ("" if ok else "; the barrier closures start from the placement instead"))
-    return y.astype(x.dtype) if ok else x
-
-
 def simulate(scene: Scene | None = None, *, progress: Callable[[str], None] | None = None,
              throw: bool = True, valve=None) -> SimulationResult:
     """Close the valve of ``scene`` (default: the benchmark `Scene()`) and measure it.
@@ -243,7 +139,9 @@ def simulate(scene: Scene | None = None, *, progress: Callable[[str], None] | No
     the solver accepts is checked independently (`jaxvalve.valve.state_failure`): crossed
     leaflets or a collapsed or folded triangle make it not converged
     (``leaflets_cross``, ``inverted_triangles``: `jaxvalve.valve.STATE_FAILURES`).
-    valve: a prebuilt `Valve` for this scene's root and template (skips the setup).
+    A state that is not finite raises `ConvergenceError` either way (it cannot be
+    measured).  valve: a prebuilt `Valve` for this scene's root and template (skips the
+    setup).  The closures are `jaxvalve.closure.close_valve`'s.
     """
     scene = Scene() if scene is None else scene
     say = progress or _quiet
@@ -251,70 +149,18 @@ def simulate(scene: Scene | None = None, *, progress: Callable[[str], None] | No
     t0 = time.perf_counter()
     valve = build_scene_valve(scene, say) if valve is None else valve
     setup = time.perf_counter() - t0
-    material, contact, solver = scene.material(), scene.contact_law(), scene.make_solver()
-    bending = scene.bending_law()
-    reports, states = [], []
-    x = np.asarray(valve.x_start, scene.dtype)
-    p_prev, limit = 0.0, None
-    start_s = 0.0
-    if scene.contact == "barrier":
-        with compile_timer() as ct:
-            t0 = time.perf_counter()
-            x = _swing_shut(valve, scene, material, bending, x, say)
-            start_s = time.perf_counter() - t0
-        start_s = max(start_s - ct.seconds, 0.0)
-
-    def close(p, x0):
-        return V.close(valve, material, p, solver=solver, contact=contact,
-                       thickness=scene.thickness, fibre_angle=np.deg2rad(scene.fibre_angle),
-                       bending=bending, x0=x0, throw=False, check_state=True)
-
-    for p in (scene.he_pressure, scene.pressure):
-        if limit is not None:        # the lower load passed the limit point: so does this
-            reports.append(dataclasses.replace(reports[-1], pressure=float(p), steps=0,
-                                               wall_s=0.0, compile_s=0.0))
-            states.append(states[-1])
-            say(f"closing at {p:g} mmHg: skipped, above the limit point")
-            continue
-        say(f"closing at {p:g} mmHg ({scene.model}, {scene.solver} solver, {scene.contact} "
-            "contact)")
-        with compile_timer() as ct:
-            t0 = time.perf_counter()
-            # one solve at p; where it runs away, continuation in pressure from p_prev
-            rr = ramp(close, x, p, p_prev, Ramp.for_solver(solver), cut=cut_on(solver))
-            sol, p_state = rr.final
-            jax.block_until_ready(sol.x)
-            wall = time.perf_counter() - t0
-        if len(rr.history) > 1:
-            say("  continuation: " + ", ".join(f"{q:.3g} mmHg {r} ({n} steps)"
-                                               for q, r, n, _ in rr.history))
-        limit = rr.pressure if rr.limit_point else None
-        status = RESULTS.successful.name if rr.converged else rr.status
-        rep = SolveReport(pressure=float(p), result=status,
-                          converged=rr.converged, steps=rr.steps,
-                          residual=float(sol.stats.residual), wall_s=wall,
-                          compile_s=min(ct.seconds, wall), limit_pressure=limit,
-                          state_pressure=p_state,
-                          cause=closure_cause(valve, scene, material, status, p_state,
-                                              sol.x))
-        say(f"  {rep.describe()}; {rep.solve_s:.2f} s (+{rep.compile_s:.1f} s compile)")
-        if throw and not rep.converged:
-            raise ConvergenceError(f"valve closure at {p:g} mmHg did not converge: "
-                                   f"{rep.describe()}", sol)
-        x_new = np.asarray(sol.x)
-        x = x_new
-        if not np.all(np.isfinite(x)):
-            raise ConvergenceError(f"valve closure at {p:g} mmHg produced non-finite "
-                                   "positions", sol)
-        reports.append(rep)
-        states.append(x.astype(np.float64))
-        p_prev = float(p)
+    loads = close_valve(valve, scene, throw=throw, say=say)
+    for ls in loads:
+        if not np.all(np.isfinite(ls.x)):
+            raise ConvergenceError(f"valve closure at {ls.report.pressure:g} mmHg produced "
+                                   "non-finite positions", ls.solution)
     say("measuring coaptation")
     t0 = time.perf_counter()
-    m_he = measure(valve, states[0], scene.g_c)
-    m = measure(valve, states[1], scene.g_c)
+    m_he = measure(valve, loads[0].x, scene.g_c)
+    m = measure(valve, loads[1].x, scene.g_c)
     t_m = time.perf_counter() - t0
     timings = dict(setup=setup, metrics=t_m, total=time.perf_counter() - t_all,
-                   start=start_s)
-    return SimulationResult(scene=scene, valve=valve, x=states[1], x_he=states[0], metrics=m,
-                            metrics_he=m_he, solves=tuple(reports), timings=timings)
+                   start=loads[0].start_s)
+    return SimulationResult(scene=scene, valve=valve, x=loads[1].x, x_he=loads[0].x,
+                            metrics=m, metrics_he=m_he,
+                            solves=tuple(ls.report for ls in loads), timings=timings)

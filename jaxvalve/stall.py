@@ -21,7 +21,7 @@ import numpy as np
 
 from . import assembly, equilibrium
 
-__all__ = ["StallReport", "probe", "stopped_cause", "closure_cause", "TERMS"]
+__all__ = ["StallReport", "probe", "stopped_cause", "TERMS"]
 
 #: The force terms probed: strain, bending, contact (`assembly.force_parts`).
 TERMS = ("elastic", "bending", "contact")
@@ -134,12 +134,3 @@ def stopped_cause(problem, params, result: str, x, *, skin, precision="float64")
     p64 = jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float64), params)
     return probe(problem, p64, jnp.asarray(np.asarray(x, np.float64)), skin=skin,
                  precision=precision).cause()
-
-
-def closure_cause(valve, scene, material, result: str, pressure, x) -> str | None:
-    """`stopped_cause` of a valve closure of ``scene`` with ``material`` at ``pressure``
-    mmHg in state x."""
-    params = valve.params(material, pressure, scene.contact_law(), scene.thickness,
-                          np.deg2rad(scene.fibre_angle), scene.bending_law())
-    return stopped_cause(valve.problem, params, result, x, skin=valve.skin,
-                         precision=scene.precision)

@@ -14,9 +14,10 @@ Each run ends one of three ways (`classify`):
   check, a non-finite residual, state or metric returned as a result, or an unexpected
   exception type (IndexError, FloatingPointError, ...).
 
-A run at load P is a two-stage continuation like `jaxvalve.simulate`: the valve is closed
-at 3 mmHg from the placement, then at P from that state (for P = 3 the first stage is the
-run).  The 3 mmHg stage is shared by the runs at 80 and 200 mmHg of one material, so a
+A run at load P is a two-stage continuation like `jaxvalve.simulate`, by the same closure
+driver (`jaxvalve.closure`): the valve is closed at 3 mmHg from the placement, then at P
+from that state, with continuation in pressure where a solve runs away (for P = 3 the
+first stage is the run).  The 3 mmHg stage is shared by the runs at 80 and 200 mmHg of one material, so a
 group of (E, P) costs one closure per load.  The run is judged on its final state, the one
 it returns; the 3 mmHg stage's result is recorded with it (``stage1``).
 
@@ -45,8 +46,7 @@ from .errors import ConvergenceError, JaxvalveError
 from .leaflet_mesh import LeafletMesh, mesh_leaflet
 from .mesh import signed_areas_np, triangle_angles
 from .scene import MODELS, PRECISIONS, Scene
-from .solvers import RESULTS
-from .stall import closure_cause
+from .closure import close_load, close_valve
 from .template import PAPER_TEMPLATES, Template
 
 __all__ = ["RunRecord", "MATRIX_E", "MATRIX_P", "STRESS_H", "STRESS_MAX_STEPS",
@@ -57,7 +57,7 @@ __all__ = ["RunRecord", "MATRIX_E", "MATRIX_P", "STRESS_H", "STRESS_MAX_STEPS",
 MATRIX_E = (0.05, 0.1, 1.0, 10.0, 20.0)      # MPa
 MATRIX_P = (3.0, 80.0, 200.0)                # mmHg
 STRESS_H = 2.0                               # mm (h = 3 mm does not converge; docs/known-limits.md)
-STRESS_MAX_STEPS = 4000                      # FIRE steps a closure (see `_solve_stage`)
+STRESS_MAX_STEPS = 4000                      # FIRE steps a solve
 HE_PRESSURE = 3.0
 OUTCOMES = ("converged", "reported", "silent")
 #: results of `valve.close(..., check_state=True)`: the solver met the tolerance, the
@@ -227,24 +227,23 @@ def _metric_values(m):
                                                        for a in arrays])
 
 
-def _judge(rec: RunRecord, valve, sol, scene: Scene, x64, note: str = "", limit=None,
-           pressure=None):
-    """Fill the checks of ``rec`` from the solution at its load and classify it.  limit:
-    the `RampResult` of a closure that ended at a limit point (then ``sol`` is the
-    equilibrium at its highest pressure, and the run is reported as ``limit_point``).
-    pressure: of the state ``sol`` (mmHg; default ``rec.P``), for the stall probe of a
-    closure stopped at its step cap (`stall.closure_cause`)."""
+def _judge(rec: RunRecord, valve, ls, scene: Scene):
+    """Fill the checks of ``rec`` from the closure's outcome at its load (a
+    `jaxvalve.closure.LoadSolve`: its state, report and continuation) and classify it.
+    A closure that ended at a limit point is reported as ``limit_point``, its state the
+    equilibrium at the highest pressure found."""
     from .simulation import measure
-    rec.result = sol.status
-    rec.residual = float(sol.stats.residual)
-    rec.steps += int(sol.stats.steps)
+    sol, x64, rep = ls.solution, ls.x, ls.report
+    rec.result = rep.result
+    rec.residual = float(rep.residual)
+    rec.steps += int(rep.steps)
     finite = bool(np.all(np.isfinite(x64)))
     notes = []
     if finite:
-        rep = triangle_checks(valve.ref, valve.triangles, x64)
-        rec.min_J, rec.max_fold_deg, rec.max_stretch = rep.min_J, rep.max_fold_deg, rep.max_stretch
-        if not rep.ok:
-            notes.append(rep.describe())
+        tc = triangle_checks(valve.ref, valve.triangles, x64)
+        rec.min_J, rec.max_fold_deg, rec.max_stretch = tc.min_J, tc.max_fold_deg, tc.max_stretch
+        if not tc.ok:
+            notes.append(tc.describe())
         pairs = V.leaflet_crossings(valve, x64)
         rec.crossings = int(len(pairs))
         if rec.crossings:
@@ -264,11 +263,11 @@ def _judge(rec: RunRecord, valve, sol, scene: Scene, x64, note: str = "", limit=
                 notes.append("non-finite coaptation metric")
         except JaxvalveError as e:
             notes.append(f"metrics: {type(e).__name__}: {e}")
-    claimed = sol.converged
-    if limit is not None:       # sol: the converged equilibrium at the limit pressure
-        rec.outcome, rec.result = "reported", "limit_point"
-        rec.cause = limit.describe() + (" [state: " + "; ".join(notes) + "]" if notes else "")
-    elif claimed:
+    if ls.limit_point:          # the state: the converged equilibrium at the limit pressure
+        rec.outcome = "reported"
+        rec.cause = ls.ramp.describe() + (" [state: " + "; ".join(notes) + "]"
+                                          if notes else "")
+    elif sol.converged and ls.converged:
         if not (math.isfinite(rec.residual) and rec.residual < scene.rtol):
             notes.append(f"claimed convergence at relative residual {rec.residual:.3g}")
         if not finite:
@@ -284,14 +283,13 @@ def _judge(rec: RunRecord, valve, sol, scene: Scene, x64, note: str = "", limit=
     else:
         rec.outcome = "reported"
         rec.cause = f"{rec.result} at relative residual {rec.residual:.2e}"
-        why = closure_cause(valve, scene, scene.material(), rec.result,
-                            rec.P if pressure is None else pressure, x64)
-        if why:
-            rec.cause += f" ({why})"
-        if note:
-            rec.result, rec.cause = "diverged", f"{note}; {rec.cause}"
+        if rep.cause:
+            rec.cause += f" ({rep.cause})"
         if notes:
             rec.cause += " [state: " + "; ".join(notes) + "]"
+    if len(ls.ramp.history) > 1:       # the continuation's solves, in order
+        rec.cause += " [continuation: " + ", ".join(
+            f"{q:.3g} mmHg {r}" for q, r, _, _ in ls.ramp.history) + "]"
     return rec
 
 
@@ -331,80 +329,31 @@ def _stale_pairs(valve, contact, dtype):
     return stale_soft_pairs(base, PAIR_CAPACITY * default_soft_capacity(n))
 
 
-def _close(valve, scene: Scene, p, x0):
-    """One closure as `simulate` runs it, with the state guard of `valve.close`
-    (check_state=True) on, and larger pair lists (`PAIR_CAPACITY`) for the smooth law."""
+def _start_pairs(valve, scene: Scene):
+    """The pair list a stress closure starts from: an empty one of `PAIR_CAPACITY` times
+    the default capacity for FIRE on the smooth law, else None (the solve's default)."""
     contact = scene.contact_law()
-    nbrs = (_stale_pairs(valve, contact, scene.dtype)
-            if scene.solver == "fire" and hasattr(contact, "energy") else None)
-    return V.close(valve, scene.material(), p, solver=scene.make_solver(),
-                   contact=contact, thickness=scene.thickness,
-                   fibre_angle=np.deg2rad(scene.fibre_angle), bending=scene.bending_law(),
-                   x0=np.asarray(x0, scene.dtype), throw=False, check_state=True,
-                   nbrs=nbrs)
+    if scene.solver == "fire" and hasattr(contact, "energy"):
+        return _stale_pairs(valve, contact, scene.dtype)
+    return None
 
 
-#: FIRE steps a leg of a stress closure (`_solve_stage`): one compiled solve serves
-#: every leg, and a closure whose leaflets fly off is stopped after its first leg.
-LEG_STEPS = 1000
-#: a closure has diverged when a node lies this many times farther from the root's
-#: origin than the farthest node of the placement (leaflets blown out of the root).
-DIVERGED_FACTOR = 4.0
+def _first_stage(valve, scene: Scene):
+    """The closure at `HE_PRESSURE` from the valve's start, as `simulate` runs it (the
+    one closure driver, `jaxvalve.closure.close_valve`): a `LoadSolve`."""
+    return close_valve(valve, scene, pressures=(HE_PRESSURE,),
+                       nbrs=_start_pairs(valve, scene))[0]
 
 
-def _solve_stage(valve, scene, p, x0):
-    """(solution, x float64, note) of one closure of at most ``scene.max_steps`` FIRE
-    steps.  From 4 `LEG_STEPS` steps on it runs in two legs, `LEG_STEPS` steps and then the
-    rest from the state the first reached (two compiled solves per model and precision).
-    After a first leg that did not converge, a state whose leaflets have left the root (a
-    node `DIVERGED_FACTOR` times farther from the origin than in the placement: soft
-    leaflets at high pressure, whose membrane finds no equilibrium and balloons out) stops
-    the closure, with ``note`` saying so; such steps cost 10-20x a normal step (the
-    contact pair list is rebuilt at each)."""
-    import jax
-    legs = ([min(LEG_STEPS, scene.max_steps), scene.max_steps - LEG_STEPS]
-            if scene.solver == "fire" and scene.max_steps >= 4 * LEG_STEPS
-            else [scene.max_steps])
-    origin = np.asarray(valve.root.origin, float)
-    size = float(np.max(np.linalg.norm(np.asarray(valve.x_placed) - origin, axis=1)))
-    steps, note, x = 0, "", np.asarray(x0, float)
-    for k, leg in enumerate(legs):
-        sol = _close(valve, scene.replace(max_steps=leg), p, x)
-        jax.block_until_ready(sol.x)
-        x = np.asarray(sol.x).astype(np.float64)
-        steps += int(sol.stats.steps)
-        if int(sol.result) != RESULTS.max_steps_reached or not np.all(np.isfinite(x)):
-            break
-        far = float(np.max(np.linalg.norm(x - origin, axis=1)))
-        if k + 1 < len(legs) and far > DIVERGED_FACTOR * size:
-            note = (f"diverged: leaflets blown out of the root (a node {far:.0f} mm from its "
-                    f"origin, placement {size:.0f} mm) after {steps} steps")
-            break
-    sol = dataclasses.replace(sol, stats=dataclasses.replace(sol.stats, steps=steps))
-    return sol, x, note
-
-
-def _ramp_stage(valve, scene, p, x0, p_start):
-    """(solution, x float64, note, `RampResult`) of the closure at p from the equilibrium
-    x0 at p_start, with the continuation in pressure that `simulate` runs
-    (`continuation.ramp`): where a closure runs away (``escaped``), the pressure interval
-    is bisected from the last equilibrium, so a load past the membrane's inflation limit
-    ends as ``limit_point`` with the equilibrium at the highest pressure found.  A closure
-    that converges at p is one `_solve_stage`, as before.  ``steps`` counts every solve."""
-    from .continuation import Ramp, cut_on, ramp
-    notes = {}
-
-    def solve(q, x):
-        sol, _, note = _solve_stage(valve, scene, q, x)
-        notes[q] = note
-        return sol
-
-    solver = scene.make_solver()
-    rr = ramp(solve, np.asarray(x0, float), p, p_start, Ramp.for_solver(solver),
-              cut=cut_on(solver))
-    sol, q = rr.final
-    sol = dataclasses.replace(sol, stats=dataclasses.replace(sol.stats, steps=rr.steps))
-    return sol, np.asarray(sol.x).astype(np.float64), notes.get(q, ""), rr
+def _next_stage(valve, scene: Scene, p, first):
+    """The closure at p > `HE_PRESSURE` from the first stage's state, with the
+    continuation in pressure that `simulate` runs (`jaxvalve.closure.close_load`): where
+    a solve runs away (``escaped``: a node farther from its start than the valve's
+    diameter, soft leaflets ballooning out of the root), the pressure interval is bisected
+    from the last equilibrium, so a load past the membrane's inflation limit ends as
+    ``limit_point``."""
+    return close_load(valve, scene, p, np.asarray(first.solution.x), p_from=HE_PRESSURE,
+                      nbrs=_start_pairs(valve, scene))
 
 
 def run_group(valve, *, template: str, mesh: str, model: str, precision: str,
@@ -429,32 +378,27 @@ def run_group(valve, *, template: str, mesh: str, model: str, precision: str,
                           model=model, E=float(E), precision=precision, rtol=rtol,
                           max_steps=max_steps, pressure=float(max(Ps)),
                           he_pressure=HE_PRESSURE, **extra)
-            sol1, x1, note1 = _solve_stage(valve, scene, HE_PRESSURE, valve.x_start)
+            st1 = _first_stage(valve, scene)
         except Exception as e:  # noqa: BLE001 - classified, not swallowed
             for rec in pending:
                 rec.wall_s = time.perf_counter() - t0
                 out.append(_exception(rec, e))
                 _emit(on_record, rec)
             continue
-        stage1 = f"{sol1.status} {float(sol1.stats.residual):.1e}"
+        stage1 = f"{st1.report.result} {st1.report.residual:.1e}"
         w1 = time.perf_counter() - t0
         for rec in pending:
             t1 = time.perf_counter()
             rec.stage1 = stage1
             try:
                 if rec.P == HE_PRESSURE:
-                    _judge(rec, valve, sol1, scene, x1, note1)
-                elif not np.all(np.isfinite(x1)):
+                    _judge(rec, valve, st1, scene)
+                elif not np.all(np.isfinite(st1.x)):
                     raise ConvergenceError(f"valve closure at {HE_PRESSURE:g} mmHg produced "
-                                           "non-finite positions", sol1)
+                                           "non-finite positions", st1.solution)
                 else:
-                    rec.steps = int(sol1.stats.steps)
-                    sol, x, note, rr = _ramp_stage(valve, scene, rec.P, x1, HE_PRESSURE)
-                    _judge(rec, valve, sol, scene, x, note, limit=rr if rr.limit_point else None,
-                           pressure=rr.final[1])
-                    if len(rr.history) > 1:       # the continuation's solves, in order
-                        rec.cause += " [continuation: " + ", ".join(
-                            f"{q:.3g} mmHg {r}" for q, r, _, _ in rr.history) + "]"
+                    rec.steps = st1.report.steps
+                    _judge(rec, valve, _next_stage(valve, scene, rec.P, st1), scene)
             except Exception as e:  # noqa: BLE001
                 _exception(rec, e)
             # the shared 3 mmHg stage (compile included) is timed in the group's first run
@@ -473,8 +417,7 @@ def closed_state(valve, *, model: str = "stvk", precision: str = "float64", E: f
         scene = Scene(r=tpl.r, a=tpl.a, b=tpl.b, alpha=tpl.alpha, h=valve.leaflet.h,
                       model=model, E=float(E), precision=precision, rtol=rtol,
                       max_steps=max_steps, pressure=float(P))
-        _, x_he, _ = _solve_stage(valve, scene, HE_PRESSURE, valve.x_start)
-        _, x, _ = _solve_stage(valve, scene, P, x_he)
+        x = _next_stage(valve, scene, P, _first_stage(valve, scene)).x
     except Exception:  # noqa: BLE001 - run_penetration then closes it itself and reports
         return None
     return x if np.all(np.isfinite(x)) else None
@@ -495,14 +438,16 @@ def run_penetration(valve, *, template: str, model: str = "stvk", precision: str
                       model=model, E=float(E), precision=precision, rtol=rtol,
                       max_steps=max_steps, pressure=float(P))
         if x_closed is None:
-            s1, x_he, _ = _solve_stage(valve, scene, HE_PRESSURE, valve.x_start)
-            s2, x_closed, _ = _solve_stage(valve, scene, P, x_he)
-            rec.stage1 = f"{s2.status} {float(s2.stats.residual):.1e}"
+            s2 = _next_stage(valve, scene, P, _first_stage(valve, scene))
+            x_closed = s2.x
+            rec.stage1 = f"{s2.report.result} {s2.report.residual:.1e}"
         x0 = penetrated_start(valve, x_closed, depth)
         n0 = len(V.leaflet_crossings(valve, x0))
         rec.start = f"penetrated ({n0} crossing pairs)"
-        sol, x, note = _solve_stage(valve, scene, P, x0)
-        _judge(rec, valve, sol, scene, x, note)
+        # the start is no equilibrium: p_from = 0, so a limit point can be claimed only
+        # from an equilibrium the continuation itself reaches
+        _judge(rec, valve, close_load(valve, scene, P, x0.astype(scene.dtype),
+                                      nbrs=_start_pairs(valve, scene)), scene)
     except Exception as e:  # noqa: BLE001
         _exception(rec, e)
     rec.wall_s = time.perf_counter() - t0

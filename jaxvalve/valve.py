@@ -173,8 +173,10 @@ def settle(valve: Valve, material, *, solver=None, thickness=0.3) -> Valve:
 
 def close(valve: Valve, material, pressure_mmhg=80.0, *, solver=None, contact=None,
           thickness=0.3, fibre_angle=0.0, bending=None, x0=None, throw=True,
-          check_state=False, nbrs=None):
-    """Equilibrium of the valve under ``pressure_mmhg`` from ``x0`` (default x_start).
+          check_state=False, nbrs=None, ref=None, whole_lists=False):
+    """One equilibrium solve of the valve under ``pressure_mmhg`` from ``x0`` (default
+    x_start).  Closing a valve under its loads, with continuation in pressure, is
+    `jaxvalve.closure` (the one closure driver), which calls this for every solve.
 
     check_state: test a converged state with `leaflet_crossings` and
     `checks.triangle_checks` (host side, ~10 ms at h = 2 mm); if leaflets cross, the
@@ -188,8 +190,12 @@ def close(valve: Valve, material, pressure_mmhg=80.0, *, solver=None, contact=No
     it.  Without this check such states are returned as converged (docs/known-limits.md).
     nbrs: a contact pair list to start from (`equilibrium.solve`), e.g. an empty one of
     larger capacity (`equilibrium.stale_pairs`) so that a crumpling closure does not
-    overflow and recompile."""
+    overflow and recompile.  ref (N, 2|3) mm: the leaflets' reference where it is not
+    ``valve.ref`` (a mapped template, `optimize.Evaluator`; traced, so a new template
+    does not recompile).  whole_lists: `equilibrium.solve`'s."""
     params = valve.params(material, pressure_mmhg, contact, thickness, fibre_angle, bending)
+    if ref is not None:
+        params = params.replace(ref=ref)
     x0 = valve.x_start if x0 is None else x0
     if getattr(params.contact, "barrier", False):
         from .solvers import BarrierNewton, solve_barrier
@@ -204,8 +210,9 @@ def close(valve: Valve, material, pressure_mmhg=80.0, *, solver=None, contact=No
                                    f"converge: {sol.describe()}", sol)
     else:
         sol = equilibrium.solve(valve.problem, params, jnp.asarray(x0), solver,
-                                throw=throw and not check_state, nbrs=nbrs, skin=valve.skin)
-    sol = checked(valve, sol) if check_state else ValveSolution(
+                                throw=throw and not check_state, nbrs=nbrs, skin=valve.skin,
+                                whole_lists=whole_lists)
+    sol = checked(valve, sol, ref=ref) if check_state else ValveSolution(
         x=sol.x, result=sol.result, stats=sol.stats, nbrs=sol.nbrs)
     if throw and check_state and not sol.converged:
         raise ConvergenceError(f"valve closure at {pressure_mmhg:g} mmHg did not converge: "

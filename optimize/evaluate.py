@@ -27,7 +27,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxvalve import equilibrium, stall
+from jaxvalve import equilibrium
+from jaxvalve.closure import close_load
 from jaxvalve import valve as V
 from jaxvalve.coaptation import annulus_level
 from jaxvalve.coaptation.smooth import smooth_metrics, smooth_plan
@@ -97,7 +98,6 @@ class Evaluator:
         # closure (few live pairs) the prefixes pay, and one program serves both loads.
         self.whole_lists = self.loads == ("closed",)
         self.pressure = {"he": scene.he_pressure, "closed": scene.pressure}
-        self.solver = scene.make_solver()
         self.material, self.contact = scene.material(), scene.contact_law()
         self.bending = scene.bending_law()
         self.say = progress or (lambda s: None)
@@ -216,29 +216,22 @@ class Evaluator:
                 seed = self.valve.x_start   # not the other load's state: closing at
                 #                             80 mmHg from the 3 mmHg state chatters
             x0 = self._x_fixed_jit(th, jnp.asarray(seed))
-            params = self.base[load].replace(ref=self._ref_jit(th))
-            if material is not None:
-                params = params.replace(material=material)
-            t0 = time.perf_counter()
-            sol = equilibrium.solve(self.valve.problem, params, x0, self.solver, throw=False,
-                                    skin=self.valve.skin, whole_lists=self.whole_lists)
-            # the valve's state check, as `simulate` applies it (crossed leaflets, folds)
-            sol = V.checked(self.valve, sol, ref=params.ref)
+            # the one closure driver, with the mapped reference: the state check
+            # (crossed leaflets, folds), continuation where a solve runs away, the stall
+            # probe for a solve stopped at its step cap
+            ls = close_load(self.valve, self.scene, self.pressure[load], x0,
+                            material=self.material if material is None else material,
+                            ref=self._ref_jit(th), whole_lists=self.whole_lists)
+            sol, rep = ls.solution, ls.report
             x = np.asarray(sol.x)
-            ok = sol.converged and bool(np.all(np.isfinite(x)))
+            ok = rep.converged and bool(np.all(np.isfinite(x)))
             solves.append(dict(load=load, pressure=self.pressure[load], converged=ok,
-                               result=sol.status,
-                               steps=int(sol.stats.steps),
-                               residual=float(sol.stats.residual),
-                               seconds=time.perf_counter() - t0))
+                               result=rep.result, steps=rep.steps, residual=rep.residual,
+                               seconds=rep.wall_s))
             if not ok:
-                reason = f"closure at {self.pressure[load]:g} mmHg: {sol.describe()}"
-                cause = stall.stopped_cause(self.valve.problem, params, sol.status, x,
-                                            skin=self.valve.skin,
-                                            precision=self.scene.precision)
-                if cause:
-                    reason += f"; {cause}"
-                    solves[-1]["cause"] = cause
+                reason = f"closure at {self.pressure[load]:g} mmHg: {rep.describe()}"
+                if rep.cause:
+                    solves[-1]["cause"] = rep.cause
                 return Evaluation(rab, self.generation, states, plans, metrics, {},
                                   float("inf"), float("nan"), tuple(solves), False, reason)
             states[load] = (x0, sol)
@@ -263,7 +256,7 @@ class Evaluator:
         the leaflet mesh mapped to ev's template, the closed states of ``ev``, and a
         closure warm-started from the other load for a load the objective did not need.
         Plots (``plot_profiles``, ``plot_valve``) and ``summary()`` work on it."""
-        from jaxvalve.simulation import SimulationResult, SolveReport, measure, compile_timer
+        from jaxvalve.simulation import SimulationResult, SolveReport, measure
 
         if not ev.converged:
             raise ConvergenceError(f"no result at (r, a, b) = {tuple(ev.rab)}: {ev.reason}")
@@ -286,25 +279,14 @@ class Evaluator:
             if load in xs:
                 continue
             seed = next(iter(xs.values()))
-            params = self.valve.params(self.material, self.pressure[load], self.contact,
-                                       self.scene.thickness, np.deg2rad(self.scene.fibre_angle),
-                                       self.bending).replace(ref=self._ref_jit(th))
-            with compile_timer() as ct:
-                t0 = time.perf_counter()
-                sol = equilibrium.solve(self.valve.problem, params,
-                                        self._x_fixed_jit(th, jnp.asarray(seed)),
-                                        self.solver, throw=False, skin=self.valve.skin)
-                sol = V.checked(self.valve, sol, ref=params.ref)
-                x = np.asarray(sol.x)
-                wall = time.perf_counter() - t0
-            ok = sol.converged and bool(np.all(np.isfinite(x)))
-            if throw and not ok:
+            ls = close_load(self.valve, self.scene, self.pressure[load],
+                            self._x_fixed_jit(th, jnp.asarray(seed)), material=self.material,
+                            ref=self._ref_jit(th))
+            if throw and not ls.converged:
                 raise ConvergenceError(f"closure at {self.pressure[load]:g} mmHg did not "
-                                       f"converge: {sol.describe()}", sol)
-            xs[load] = x
-            reports[load] = SolveReport(float(self.pressure[load]), sol.status,
-                                        ok, int(sol.stats.steps), float(sol.stats.residual),
-                                        wall, min(ct.seconds, wall))
+                                       f"converge: {ls.report.describe()}", ls.solution)
+            xs[load] = ls.x
+            reports[load] = ls.report
         t0 = time.perf_counter()
         m_he, m = (measure(valve, xs[l], self.scene.g_c) for l in LOAD_ORDER)
         t_m = time.perf_counter() - t0

@@ -279,10 +279,7 @@ def test_a_closure_stopped_at_its_step_cap_names_the_stall_probes_verdict(evalua
     """The evaluator reports why a closure stopped at its cap, as `simulate` does
     (`jaxvalve.stall`): here 20 steps from the open valve, far from equilibrium on a
     continuous force, so the verdict is a slow solve, not a jump."""
-    import dataclasses
-
-    monkeypatch.setattr(evaluator, "solver", dataclasses.replace(evaluator.solver,
-                                                                 max_steps=20))
+    monkeypatch.setattr(evaluator, "scene", evaluator.scene.replace(max_steps=20))
     ev = evaluator.forward(BASE)
     assert not ev.converged and "max_steps_reached" in ev.reason
     assert "the solve is slow, not stuck on a jump" in ev.reason

@@ -1,0 +1,250 @@
+"""The one closure driver: a valve closed under its loads.
+
+Every closure in jaxvalve runs through here: `simulate`, `simulate_batch` (whose batched
+program makes each member's first attempt at each load, handed here as ``first``), the
+optimiser's `Evaluator` and the stress suite.
+
+* `close_load(valve, scene, p, x0, p_from=...)`: one load.  The solve at p mmHg from x0
+  (`valve.close`, with its state check: crossed leaflets, folded or collapsed
+  triangles); where it runs away, or fails in a way its solver declares a load step too
+  long (`continuation.cut_on`), continuation in pressure from the equilibrium x0 at
+  p_from, ending as ``limit_point`` where no equilibrium lies above a pressure
+  (`continuation.ramp`, with the step budget `Ramp.for_solver`); for a solve stopped at
+  its step cap, the stall probe's verdict (`stall.stopped_cause`).  Returns a
+  `LoadSolve`: the `SolveReport`, the state, the solve that gave it (with its contact
+  pair list, for the adjoint) and the ramp.
+* `close_valve(valve, scene)`: the scene's loads in turn (``he_pressure``, then
+  ``pressure``), each from the state of the one before; on the barrier path the valve is
+  first swung shut (`swing_shut`).  A load above a limit point, or after a state that is
+  not finite, is not solved: its report repeats the earlier outcome with 0 steps.
+"""
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Any, Callable
+
+import jax
+import numpy as np
+
+from . import valve as V
+from .continuation import Ramp, RampResult, cut_on, ramp
+from .errors import ConvergenceError
+from .scene import Scene
+from .solvers import RESULTS
+from .stall import stopped_cause
+from .timing import compile_timer
+
+__all__ = ["SolveReport", "LoadSolve", "close_load", "close_valve", "swing_shut"]
+
+
+def _quiet(msg):
+    pass
+
+
+@dataclasses.dataclass(frozen=True)
+class SolveReport:
+    """One load: pressure (mmHg), result name, converged, steps, relative residual
+    ||F_free|| / ||F_pressure||, wall time (s) and the part of it spent compiling.
+    A load past the valve's limit point has result 'limit_point' and ``limit_pressure``,
+    the highest pressure (mmHg) with an equilibrium, whose state and residual are
+    reported instead (`jaxvalve.continuation`).  state_pressure (mmHg): the pressure of
+    the state reported, where it is not ``pressure`` (a limit point, or a continuation
+    that failed on the way).  cause: for a solve stopped at its step cap, whether the
+    force jumps where it stopped (`jaxvalve.stall`), else None."""
+
+    pressure: float
+    result: str
+    converged: bool
+    steps: int
+    residual: float
+    wall_s: float = 0.0
+    compile_s: float = 0.0
+    limit_pressure: float | None = None
+    state_pressure: float | None = None
+    cause: str | None = None
+
+    @property
+    def solve_s(self):
+        """Wall time without compilation (s)."""
+        return max(self.wall_s - self.compile_s, 0.0)
+
+    def describe(self) -> str:
+        """One line: the outcome at this load."""
+        if self.result == "limit_point":
+            return (f"limit_point: no equilibrium above {self.limit_pressure:.3g} mmHg "
+                    f"(state shown at {self.limit_pressure:.3g} mmHg, residual "
+                    f"{self.residual:.2e}, {self.steps} steps)")
+        at = ("" if self.state_pressure in (None, self.pressure)
+              else f" (state at {self.state_pressure:.3g} mmHg)")
+        why = f"; {self.cause}" if self.cause else ""
+        return (f"{'converged' if self.converged else self.result}{at}, residual "
+                f"{self.residual:.2e}, {self.steps} steps{why}")
+
+    def as_dict(self):
+        d = dataclasses.asdict(self)
+        d["solve_s"] = self.solve_s
+        return d
+
+
+@dataclasses.dataclass(frozen=True)
+class LoadSolve:
+    """The outcome of one load (`close_load`).
+
+    report: `SolveReport`.  x (N, 3) mm, float64: the state reported (the equilibrium at
+    ``report.state_pressure`` for a limit point).  solution: the `ValveSolution` that gave
+    x, in the scene's precision (its pair list serves the adjoint).  ramp: the
+    `RampResult` (``history``: every solve of the continuation).  start_s: seconds, after
+    compilation, spent swinging the valve shut before this load (barrier path)."""
+
+    report: SolveReport
+    x: np.ndarray
+    solution: Any
+    ramp: RampResult
+    start_s: float = 0.0
+
+    @property
+    def converged(self) -> bool:
+        return self.report.converged
+
+    @property
+    def limit_point(self) -> bool:
+        return self.report.result == "limit_point"
+
+
+def _params(valve, scene, material, p, ref):
+    params = valve.params(material, p, scene.contact_law(), scene.thickness,
+                          np.deg2rad(scene.fibre_angle), scene.bending_law())
+    return params if ref is None else params.replace(ref=ref)
+
+
+def close_load(valve, scene: Scene, pressure: float, x0, *, p_from: float = 0.0,
+               material=None, ref=None, nbrs=None, whole_lists: bool = False, first=None,
+               say: Callable[[str], None] = _quiet) -> LoadSolve:
+    """Close ``valve`` at ``pressure`` mmHg from x0 (N, 3) mm, an equilibrium at p_from
+    mmHg (or the placement, p_from = 0), by the scene's law and solver.
+
+    material: the scene's material by default (a batch member's, a stiffness sample).
+    ref: a mapped reference (N, 2|3) mm (`valve.close`).  nbrs: the contact pair list
+    every solve starts from (e.g. an empty one of larger capacity).  whole_lists:
+    `equilibrium.solve`'s.  first: the first attempt at ``pressure`` from x0, already
+    solved (a `ValveSolution`, state-checked; `simulate_batch`'s batched program).
+    say: progress, one line per phase."""
+    material = scene.material() if material is None else material
+    solver = scene.make_solver()
+    contact, bending = scene.contact_law(), scene.bending_law()
+    pending = [first]
+
+    def solve(p, x):
+        given, pending[0] = pending[0], None
+        if given is not None and p == pressure:
+            return given
+        return V.close(valve, material, p, solver=solver, contact=contact,
+                       thickness=scene.thickness, fibre_angle=np.deg2rad(scene.fibre_angle),
+                       bending=bending, x0=x, throw=False, check_state=True, nbrs=nbrs,
+                       ref=ref, whole_lists=whole_lists)
+
+    if first is None:
+        say(f"closing at {pressure:g} mmHg ({scene.model}, {scene.solver} solver, "
+            f"{scene.contact} contact)")
+    with compile_timer() as ct:
+        t0 = time.perf_counter()
+        rr = ramp(solve, x0, pressure, p_from, Ramp.for_solver(solver), cut=cut_on(solver))
+        sol, p_state = rr.final
+        jax.block_until_ready(sol.x)
+        wall = time.perf_counter() - t0
+    if len(rr.history) > 1:
+        say("  continuation: " + ", ".join(f"{q:.3g} mmHg {r} ({n} steps)"
+                                           for q, r, n, _ in rr.history))
+    status = RESULTS.successful.name if rr.converged else rr.status
+    x = np.asarray(sol.x, np.float64)
+    cause = stopped_cause(valve.problem, _params(valve, scene, material, p_state, ref),
+                          status, x, skin=valve.skin, precision=scene.precision)
+    rep = SolveReport(pressure=float(pressure), result=status, converged=rr.converged,
+                      steps=rr.steps, residual=float(sol.stats.residual), wall_s=wall,
+                      compile_s=min(ct.seconds, wall),
+                      limit_pressure=rr.pressure if rr.limit_point else None,
+                      state_pressure=float(p_state), cause=cause)
+    if first is None or len(rr.history) > 1:
+        say(f"  {rep.describe()}; {rep.solve_s:.2f} s (+{rep.compile_s:.1f} s compile)")
+    return LoadSolve(report=rep, x=x, solution=sol, ramp=rr)
+
+
+def swing_shut(valve, scene: Scene, x, *, material=None, say=_quiet):
+    """The barrier path's start: the valve swung shut at ``scene.he_pressure`` by FIRE on
+    the smooth penalty law (to a relative residual of at most 1e-4), where that closure
+    converges to a state with no crossing and every barrier distance positive; else
+    ``x`` (the placement).  Projected Newton from the open valve meets the fold limit of
+    its line search at once on soft leaflets (Table 4: no progress in 500 iterations),
+    while FIRE's dynamics swing them shut; from FIRE's state, Newton re-settles the valve
+    on the barrier in a few steps.  The final states are equilibria of the barrier law
+    either way."""
+    from .contact.ipc_pairs import build_pairs
+    material = scene.material() if material is None else material
+    start = scene.replace(contact="smooth", solver="fire", rtol=max(scene.rtol, 1e-4))
+    say(f"swinging shut at {scene.he_pressure:g} mmHg (fire solver, smooth contact), the "
+        "start of the barrier closures")
+    t0 = time.perf_counter()
+    sol = V.close(valve, material, scene.he_pressure, solver=start.make_solver(),
+                  contact=start.contact_law(), thickness=scene.thickness,
+                  fibre_angle=np.deg2rad(scene.fibre_angle), bending=scene.bending_law(),
+                  x0=x, throw=False, check_state=True)
+    y = np.asarray(sol.x, np.float64)
+    ok = (sol.converged and np.all(np.isfinite(y))
+          and build_pairs(valve.barrier_topology, y, 1.0).min_distance > 0)
+    say(f"  {sol.describe()}; {time.perf_counter() - t0:.2f} s"
+        + ("" if ok else "; the barrier closures start from the placement instead"))
+    return y.astype(np.asarray(x).dtype) if ok else x
+
+
+def _skipped(prev: LoadSolve, p, why, say) -> LoadSolve:
+    say(f"closing at {p:g} mmHg: skipped, {why}")
+    rep = dataclasses.replace(prev.report, pressure=float(p), steps=0, wall_s=0.0,
+                              compile_s=0.0)
+    return dataclasses.replace(prev, report=rep, start_s=0.0)
+
+
+def close_valve(valve, scene: Scene, *, material=None, x0=None, pressures=None, nbrs=None,
+                first=(), throw: bool = False,
+                say: Callable[[str], None] = _quiet) -> tuple:
+    """The valve closed under ``pressures`` mmHg in turn (default the scene's
+    (he_pressure, pressure)), each load from the state of the one before (`close_load`;
+    the first from x0, default ``valve.x_start``, swung shut first on the barrier path).
+    Returns one `LoadSolve` a load.
+
+    first: per load, a first attempt already solved (`close_load`); the attempt at a
+    later load is used only where the load before ended with its own first attempt (the
+    batched program solved from that state).  throw: raise `ConvergenceError` at the
+    first load that did not converge (its ``solution`` is the `ValveSolution`)."""
+    pressures = ((scene.he_pressure, scene.pressure) if pressures is None
+                 else tuple(float(p) for p in pressures))
+    material = scene.material() if material is None else material
+    x = np.asarray(valve.x_start if x0 is None else x0, scene.dtype)
+    start_s = 0.0
+    if scene.contact == "barrier":
+        with compile_timer() as ct:
+            t0 = time.perf_counter()
+            x = swing_shut(valve, scene, x, material=material, say=say)
+            start_s = max(time.perf_counter() - t0 - ct.seconds, 0.0)
+    out, p_prev = [], 0.0
+    for i, p in enumerate(pressures):
+        prev = out[-1] if out else None
+        if prev is not None and prev.limit_point:
+            out.append(_skipped(prev, p, "above the limit point", say))
+            continue
+        if prev is not None and not np.all(np.isfinite(prev.x)):
+            out.append(_skipped(prev, p, "the state before it is not finite", say))
+            continue
+        f = first[i] if i < len(first) else None
+        if prev is not None and len(prev.ramp.history) > 1:
+            f = None          # the batched attempt started from another state
+        ls = close_load(valve, scene, p, x, p_from=p_prev, material=material, nbrs=nbrs,
+                        first=f, say=say)
+        if i == 0 and start_s:
+            ls = dataclasses.replace(ls, start_s=start_s)
+        out.append(ls)
+        if throw and not ls.converged:
+            raise ConvergenceError(f"valve closure at {p:g} mmHg did not converge: "
+                                   f"{ls.report.describe()}", ls.solution)
+        x, p_prev = np.asarray(ls.solution.x), float(ls.report.state_pressure)
+    return tuple(out)
