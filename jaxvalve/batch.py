@@ -203,6 +203,7 @@ class BatchMember:
         p = ", ".join(f"{k}={v:g}" for k, v in self.parameters.items())
         s = "; ".join(f"{r.pressure:g} mmHg: {r.result}, residual {r.residual:.3e} after "
                       f"{r.steps} steps" + (f" ({r.cause})" if r.cause else "")
+                      + (f" [{r.path}, after {r.fallback}]" if r.fallback else "")
                       for r in self.solves)
         return f"member {self.index} ({self.model}: {p}): {s}"
 
@@ -249,14 +250,16 @@ class BatchResult:
 
     def rows(self) -> list[dict]:
         """One flat dict per member: model, parameters, every metric, converged, and per
-        load the result, steps and residual (the CSV of `jaxvalve sweep`)."""
+        load the result, steps, residual, stall cause, the path that closed it and the
+        failure it fell back after (the CSV of `jaxvalve sweep`)."""
         out = []
         for m in self.members:
             r = dict(member=m.index, model=m.model, **m.parameters, **m.summary(),
                      converged=m.converged)
             for tag, s in zip(("he", "closing"), m.solves):
                 r.update({f"result_{tag}": s.result, f"steps_{tag}": s.steps,
-                          f"residual_{tag}": s.residual, f"cause_{tag}": s.cause or ""})
+                          f"residual_{tag}": s.residual, f"cause_{tag}": s.cause or "",
+                          f"path_{tag}": s.path or "", f"fallback_{tag}": s.fallback or ""})
             out.append(r)
         return out
 

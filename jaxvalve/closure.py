@@ -17,6 +17,17 @@ optimiser's `Evaluator` and the stress suite.
   ``pressure``), each from the state of the one before; on the barrier path the valve is
   first swung shut (`swing_shut`).  A load above a limit point, or after a state that is
   not finite, is not solved: its report repeats the earlier outcome with 0 steps.
+  **Fallback** (``scene.fallback``, on by default): where a load on the smooth penalty
+  law fails for any reason but a limit point (a step cap, crossed leaflets, a folded
+  triangle, a state that is not finite ...), the valve is closed again, every load, on
+  the barrier law by the projected Newton solver (`fall_back`), starting from the
+  smooth law's state at the first load where that state is separated (no crossing,
+  every barrier distance positive).  Both loads of a result then come from one contact
+  law, and each report names the path that closed it (``path``) and what failed before
+  (``fallback``).  FIRE on the smooth law is the fast path (the benchmark valve closes
+  on it in 1-2 s at h = 1.5 mm); the barrier path closes the soft valves on which it
+  stalls (the paper's Table 4) but is several times slower, so it runs only where it is
+  needed.  A limit point is the membrane's, not the contact law's: no fallback there.
 """
 from __future__ import annotations
 
@@ -35,7 +46,8 @@ from .solvers import RESULTS
 from .stall import stopped_cause
 from .timing import compile_timer
 
-__all__ = ["SolveReport", "LoadSolve", "close_load", "close_valve", "swing_shut"]
+__all__ = ["SolveReport", "LoadSolve", "close_load", "close_valve", "swing_shut", "fall_back",
+           "path_name"]
 
 
 def _quiet(msg):
@@ -51,7 +63,11 @@ class SolveReport:
     reported instead (`jaxvalve.continuation`).  state_pressure (mmHg): the pressure of
     the state reported, where it is not ``pressure`` (a limit point, or a continuation
     that failed on the way).  cause: for a solve stopped at its step cap, whether the
-    force jumps where it stopped (`jaxvalve.stall`), else None."""
+    force jumps where it stopped (`jaxvalve.stall`), else None.  path: the solver and
+    contact law that closed it ("fire+smooth", "newton+barrier", ...).  fallback: where
+    the barrier path closed a load after the scene's own path failed
+    (`jaxvalve.closure`, "Fallback"), what failed there (one line), else None; wall_s
+    and compile_s then include the failed attempt's."""
 
     pressure: float
     result: str
@@ -63,6 +79,8 @@ class SolveReport:
     limit_pressure: float | None = None
     state_pressure: float | None = None
     cause: str | None = None
+    path: str | None = None
+    fallback: str | None = None
 
     @property
     def solve_s(self):
@@ -78,8 +96,9 @@ class SolveReport:
         at = ("" if self.state_pressure in (None, self.pressure)
               else f" (state at {self.state_pressure:.3g} mmHg)")
         why = f"; {self.cause}" if self.cause else ""
+        fb = (f" [{self.path}, after {self.fallback}]" if self.fallback else "")
         return (f"{'converged' if self.converged else self.result}{at}, residual "
-                f"{self.residual:.2e}, {self.steps} steps{why}")
+                f"{self.residual:.2e}, {self.steps} steps{why}{fb}")
 
     def as_dict(self):
         d = dataclasses.asdict(self)
@@ -110,6 +129,11 @@ class LoadSolve:
     @property
     def limit_point(self) -> bool:
         return self.report.result == "limit_point"
+
+
+def path_name(scene: Scene) -> str:
+    """The closure path of a scene, "<solver>+<contact>" (e.g. "fire+smooth")."""
+    return f"{scene.solver}+{scene.contact}"
 
 
 def _params(valve, scene, material, p, ref):
@@ -164,7 +188,8 @@ def close_load(valve, scene: Scene, pressure: float, x0, *, p_from: float = 0.0,
                       steps=rr.steps, residual=float(sol.stats.residual), wall_s=wall,
                       compile_s=min(ct.seconds, wall),
                       limit_pressure=rr.pressure if rr.limit_point else None,
-                      state_pressure=float(p_state), cause=cause)
+                      state_pressure=float(p_state), cause=cause,
+                      path=path_name(scene))
     if first is None or len(rr.history) > 1:
         say(f"  {rep.describe()}; {rep.solve_s:.2f} s (+{rep.compile_s:.1f} s compile)")
     return LoadSolve(report=rep, x=x, solution=sol, ramp=rr)
@@ -204,30 +229,23 @@ def _skipped(prev: LoadSolve, p, why, say) -> LoadSolve:
     return dataclasses.replace(prev, report=rep, start_s=0.0)
 
 
-def close_valve(valve, scene: Scene, *, material=None, x0=None, pressures=None, nbrs=None,
-                first=(), throw: bool = False,
-                say: Callable[[str], None] = _quiet) -> tuple:
-    """The valve closed under ``pressures`` mmHg in turn (default the scene's
-    (he_pressure, pressure)), each load from the state of the one before (`close_load`;
-    the first from x0, default ``valve.x_start``, swung shut first on the barrier path).
-    Returns one `LoadSolve` a load.
-
-    first: per load, a first attempt already solved (`close_load`); the attempt at a
-    later load is used only where the load before ended with its own first attempt (the
-    batched program solved from that state).  throw: raise `ConvergenceError` at the
-    first load that did not converge (its ``solution`` is the `ValveSolution`)."""
-    pressures = ((scene.he_pressure, scene.pressure) if pressures is None
-                 else tuple(float(p) for p in pressures))
-    material = scene.material() if material is None else material
-    x = np.asarray(valve.x_start if x0 is None else x0, scene.dtype)
+def _in_turn(valve, scene, material, x, pressures, nbrs, first, done, swung, say,
+             stop=False):
+    """The loads of `close_valve` on the scene's own path (no fallback).  stop: end
+    after the first load that failed other than at a limit point (the fallback closes
+    every load again)."""
     start_s = 0.0
-    if scene.contact == "barrier":
+    if scene.contact == "barrier" and not swung and not done:
         with compile_timer() as ct:
             t0 = time.perf_counter()
             x = swing_shut(valve, scene, x, material=material, say=say)
             start_s = max(time.perf_counter() - t0 - ct.seconds, 0.0)
-    out, p_prev = [], 0.0
+    out, p_prev = list(done), 0.0
+    if done:
+        x, p_prev = np.asarray(done[-1].solution.x), float(done[-1].report.state_pressure)
     for i, p in enumerate(pressures):
+        if i < len(done):
+            continue
         prev = out[-1] if out else None
         if prev is not None and prev.limit_point:
             out.append(_skipped(prev, p, "above the limit point", say))
@@ -243,8 +261,110 @@ def close_valve(valve, scene: Scene, *, material=None, x0=None, pressures=None, 
         if i == 0 and start_s:
             ls = dataclasses.replace(ls, start_s=start_s)
         out.append(ls)
-        if throw and not ls.converged:
-            raise ConvergenceError(f"valve closure at {p:g} mmHg did not converge: "
-                                   f"{ls.report.describe()}", ls.solution)
+        if stop and not ls.converged and not ls.limit_point:
+            break
         x, p_prev = np.asarray(ls.solution.x), float(ls.report.state_pressure)
     return tuple(out)
+
+
+def _may_fall_back(scene: Scene) -> bool:
+    """The scene's closures fall back on the barrier path where they fail: its
+    ``fallback`` is on, its law the smooth penalty, its precision float64 (the barrier
+    path's)."""
+    return bool(scene.fallback and scene.contact == "smooth"
+                and scene.precision == "float64")
+
+
+def _falls_back(scene: Scene, loads) -> LoadSolve | None:
+    """The first load that failed in a way the barrier path may mend, where ``scene``
+    allows a fallback (`close_valve`), else None."""
+    if not _may_fall_back(scene):
+        return None
+    for ls in loads:
+        if ls.limit_point:         # the membrane's inflation limit: no law mends it
+            return None
+        if not ls.converged:
+            return ls
+    return None
+
+
+def _separated(valve, x) -> bool:
+    """x is a start the barrier closures can move from: finite, no collapsed or folded
+    triangle (`checks.triangle_checks`: the barrier solver's steps keep every edge below
+    the fold limit), no crossing leaflets, every barrier pair apart."""
+    from .checks import triangle_checks
+    from .contact.ipc_pairs import build_pairs
+    x = np.asarray(x, np.float64)
+    return bool(np.all(np.isfinite(x))
+                and triangle_checks(valve.ref, valve.triangles, x).ok
+                and not len(V.leaflet_crossings(valve, x))
+                and build_pairs(valve.barrier_topology, x, 1.0).min_distance > 0)
+
+
+def fall_back(valve, scene: Scene, loads, failed: LoadSolve, *, material=None, x0=None,
+              pressures, say=_quiet) -> tuple:
+    """The valve closed again on the barrier law (projected Newton), every load, after
+    ``failed`` (a `LoadSolve` of ``loads``, the scene's own attempt) did not converge.
+    The barrier closures start from the first load's state of ``loads`` where it is
+    separated (`_separated`: the smooth law's closure, converged or not, is the swing
+    shut that the barrier path needs), else from x0 (default the placement) as it is:
+    `swing_shut` would repeat the smooth closure that failed.  Each report names the
+    failure (``fallback``) and includes the failed attempt's time."""
+    why = f"{path_name(scene)} failed at {failed.report.pressure:g} mmHg: " \
+          f"{failed.report.describe()}"
+    say(f"fallback: {why}; closing again on the barrier law (newton solver)")
+    barrier = scene.replace(contact="barrier", solver="newton")
+    start = np.asarray(loads[0].x, np.float64)
+    if _separated(valve, start):
+        x = start
+        say(f"  the barrier closures start from the {path_name(scene)} state at "
+            f"{loads[0].report.pressure:g} mmHg")
+    else:
+        x = np.asarray(valve.x_start if x0 is None else x0, np.float64)
+        say(f"  the {path_name(scene)} state at {loads[0].report.pressure:g} mmHg is no "
+            "separated start (crossing, touching or folded): the barrier closures start "
+            "from the placement")
+    out = _in_turn(valve, barrier, material, x, pressures, None, (), (), True, say)
+    merged = []
+    for i, mine in enumerate(out):
+        rep, start_s = dataclasses.replace(mine.report, fallback=why), mine.start_s
+        if i < len(loads):          # the failed attempt's time counts
+            theirs = loads[i]
+            rep = dataclasses.replace(rep, wall_s=rep.wall_s + theirs.report.wall_s,
+                                      compile_s=rep.compile_s + theirs.report.compile_s)
+            start_s += theirs.start_s
+        merged.append(dataclasses.replace(mine, report=rep, start_s=start_s))
+    return tuple(merged)
+
+
+def close_valve(valve, scene: Scene, *, material=None, x0=None, pressures=None, nbrs=None,
+                first=(), done=(), throw: bool = False,
+                say: Callable[[str], None] = _quiet) -> tuple:
+    """The valve closed under ``pressures`` mmHg in turn (default the scene's
+    (he_pressure, pressure)), each load from the state of the one before (`close_load`;
+    the first from x0, default ``valve.x_start``, swung shut first on the barrier path),
+    with the barrier path as the fallback where the scene's fails (module docstring).
+    Returns one `LoadSolve` a load.
+
+    first: per load, a first attempt already solved (`close_load`); the attempt at a
+    later load is used only where the load before ended with its own first attempt (the
+    batched program solved from that state).  done: the first loads' `LoadSolve`s, already
+    closed by this driver on the scene's path (the stress suite's shared 3 mmHg closure),
+    taken as they are.  throw: raise `ConvergenceError` at the first load that did not
+    converge (its ``solution`` is the `ValveSolution`)."""
+    pressures = ((scene.he_pressure, scene.pressure) if pressures is None
+                 else tuple(float(p) for p in pressures))
+    material = scene.material() if material is None else material
+    x = np.asarray(valve.x_start if x0 is None else x0, scene.dtype)
+    out = _in_turn(valve, scene, material, x, pressures, nbrs, first, tuple(done), False,
+                   say, stop=_may_fall_back(scene))
+    failed = _falls_back(scene, out)
+    if failed is not None:
+        out = fall_back(valve, scene, out, failed, material=material, x0=x0,
+                        pressures=pressures, say=say)
+    if throw:
+        for ls, p in zip(out, pressures):
+            if not ls.converged:
+                raise ConvergenceError(f"valve closure at {p:g} mmHg did not converge: "
+                                       f"{ls.report.describe()}", ls.solution)
+    return out

@@ -64,6 +64,9 @@ class Scene:
     parameters and forces; the metrics are always measured in float64).  float32 forces
     carry rounding near 1e-4 of ||F_pressure|| at 3 mmHg, so a float32 closure may stop
     short of rtol = 1e-4 there (docs/benchmarks.md, "Run time against error").
+    fallback: where a closure on the smooth law fails (anything but a limit point), close
+    the valve again on the barrier law by projected Newton (`jaxvalve.closure`,
+    "Fallback"; float64 only).  The reports name the path that closed each load.
     """
 
     r: float = BENCHMARK_TEMPLATE.r
@@ -91,6 +94,7 @@ class Scene:
     g_c: float = 0.5
     bending: float = 1.0
     precision: str = "float64"
+    fallback: bool = True
 
     def __post_init__(self):
         if self.model not in MODELS:
@@ -122,6 +126,8 @@ class Scene:
                 and self.bending >= 0):
             raise ParameterError(f"bending must be a finite multiple >= 0 of the plate modulus; "
                                  f"got {self.bending!r}")
+        if not isinstance(self.fallback, bool):
+            raise ParameterError(f"fallback must be true or false; got {self.fallback!r}")
         if not (isinstance(self.max_steps, int) and self.max_steps > 0):
             raise ParameterError(f"max_steps must be a positive integer; got {self.max_steps!r}")
         self.template()  # validates r, a, b, alpha

@@ -202,10 +202,12 @@ class RunRecord:
     outcome: str = ""
     cause: str = ""
     result: str = ""
+    path: str = ""                   # the closure path that gave the result (fallback)
     steps: int = 0
     residual: float = math.nan
     stage1: str = ""
     crossings: int = -1
+    ipctk: str = ""                  # the IPC toolkit's check: clean, intersects, not run
     cross_depth: float = 0.0         # `checks.crossing_depth` of the crossing pairs (mm)
     min_J: float = math.nan
     max_fold_deg: float = math.nan
@@ -218,6 +220,25 @@ class RunRecord:
 
     def as_row(self) -> dict:
         return dataclasses.asdict(self)
+
+
+def ipctk_intersects(valve, x) -> bool | None:
+    """The independent intersection check of a closed valve: the IPC toolkit's
+    `has_intersections` (ipctk, a C++ implementation of its own, a test dependency) on
+    the leaflets' triangles of x (N, 3) mm, the commissure rings left out (neighbouring
+    leaflets are sewn to one commissure point, so the elements that hold it touch by
+    construction).  None where ipctk is not installed."""
+    try:
+        import ipctk
+    except ImportError:
+        return None
+    tri = valve.triangles
+    keep = ~np.any(valve.barrier_topology.pin[tri] >= 0, axis=1)   # commissure rings
+    t = tri[keep]
+    used, inv = np.unique(t, return_inverse=True)
+    t = inv.reshape(t.shape).astype(np.int32)
+    v = np.asarray(x, float)[used]
+    return bool(ipctk.has_intersections(ipctk.CollisionMesh(v, ipctk.edges(t), t), v))
 
 
 def _metric_values(m):
@@ -235,6 +256,7 @@ def _judge(rec: RunRecord, valve, ls, scene: Scene):
     from .simulation import measure
     sol, x64, rep = ls.solution, ls.x, ls.report
     rec.result = rep.result
+    rec.path = rep.path or ""
     rec.residual = float(rep.residual)
     rec.steps += int(rep.steps)
     finite = bool(np.all(np.isfinite(x64)))
@@ -246,6 +268,10 @@ def _judge(rec: RunRecord, valve, ls, scene: Scene):
             notes.append(tc.describe())
         pairs = V.leaflet_crossings(valve, x64)
         rec.crossings = int(len(pairs))
+        hit = ipctk_intersects(valve, x64)
+        rec.ipctk = {None: "not run", True: "intersects", False: "clean"}[hit]
+        if hit and not rec.crossings:
+            notes.append("ipctk finds intersecting triangles that the exact test missed")
         if rec.crossings:
             rec.cross_depth = crossing_depth(x64, valve.triangles, pairs)
             notes.append(f"{rec.crossings} crossing triangle pairs, "
@@ -290,6 +316,9 @@ def _judge(rec: RunRecord, valve, ls, scene: Scene):
     if len(ls.ramp.history) > 1:       # the continuation's solves, in order
         rec.cause += " [continuation: " + ", ".join(
             f"{q:.3g} mmHg {r}" for q, r, _, _ in ls.ramp.history) + "]"
+    if rep.fallback:                   # closed on the barrier law after the smooth failed
+        rec.cause = (rec.cause + " " if rec.cause else "") + f"[{rep.path} after " \
+            f"{rep.fallback}]"
     return rec
 
 
@@ -346,14 +375,20 @@ def _first_stage(valve, scene: Scene):
 
 
 def _next_stage(valve, scene: Scene, p, first):
-    """The closure at p > `HE_PRESSURE` from the first stage's state, with the
-    continuation in pressure that `simulate` runs (`jaxvalve.closure.close_load`): where
-    a solve runs away (``escaped``: a node farther from its start than the valve's
-    diameter, soft leaflets ballooning out of the root), the pressure interval is bisected
-    from the last equilibrium, so a load past the membrane's inflation limit ends as
-    ``limit_point``."""
-    return close_load(valve, scene, p, np.asarray(first.solution.x), p_from=HE_PRESSURE,
-                      nbrs=_start_pairs(valve, scene))
+    """The closure at p > `HE_PRESSURE` after the first stage (its `LoadSolve`), as
+    `simulate` runs it (`jaxvalve.closure.close_valve` with the first stage done): from
+    the first stage's state, with continuation in pressure where a solve runs away
+    (``escaped``: a node farther from its start than the valve's diameter, soft leaflets
+    ballooning out of the root), so that a load past the membrane's inflation limit ends
+    as ``limit_point``, and the barrier path as the fallback where the scene's fails."""
+    if first.report.fallback:          # the first stage closed on the barrier law
+        scene = scene.replace(contact="barrier", solver="newton")
+    ls = close_valve(valve, scene, pressures=(HE_PRESSURE, p), done=(first,),
+                     nbrs=_start_pairs(valve, scene))[1]
+    if first.report.fallback and not ls.report.fallback:
+        ls = dataclasses.replace(ls, report=dataclasses.replace(
+            ls.report, fallback=first.report.fallback))
+    return ls
 
 
 def run_group(valve, *, template: str, mesh: str, model: str, precision: str,
@@ -364,7 +399,8 @@ def run_group(valve, *, template: str, mesh: str, model: str, precision: str,
     the placement, then at each P > 3 from that state.  ``extra``: more `Scene` fields
     (Jm, E1, E2, E3, ...), applied to every run.  Returns the `RunRecord`s."""
     extra = dict(extra or {})
-    tag = " ".join(f"{k}={v:g}" for k, v in extra.items())
+    tag = " ".join(f"{k}={v}" if isinstance(v, bool) else f"{k}={v:g}"
+                   for k, v in extra.items())
     tpl = valve.leaflet.template
     out = []
     for E in Es:

@@ -12,6 +12,7 @@ from jaxvalve.errors import ParameterError
 from jaxvalve.simulation import build_scene_valve, measure
 from jaxvalve.solvers import RESULTS, BarrierNewton, solve_barrier
 from jaxvalve.solvers.barrier_newton import _Model
+from jaxvalve.stress import ipctk_intersects
 from jaxvalve.valve import leaflet_crossings
 
 #: the benchmark valve at a coarse mesh (3 x 457 triangles); at h = 2-2.5 mm the solve
@@ -39,14 +40,8 @@ def closed(valve):
 
 
 def _ipctk_intersects(valve, x):
-    ipctk = pytest.importorskip("ipctk")
-    tri = valve.triangles
-    keep = ~np.any(valve.barrier_topology.pin[tri] >= 0, axis=1)   # commissure rings
-    t = tri[keep]
-    used, inv = np.unique(t, return_inverse=True)
-    t = inv.reshape(t.shape).astype(np.int32)
-    v = np.asarray(x, float)[used]
-    return ipctk.has_intersections(ipctk.CollisionMesh(v, ipctk.edges(t), t), v)
+    pytest.importorskip("ipctk")
+    return ipctk_intersects(valve, x)
 
 
 def test_barrier_closure_converges_without_crossing(valve, closed):

@@ -6,6 +6,8 @@ whose equilibrium exists up to a known pressure, ``P_LIM``, and runs away above 
 each decision is checked exactly and fast; a real closure checks that `simulate`,
 `simulate_batch` and the stress suite give one valve the same outcome.
 """
+import types
+
 import numpy as np
 import pytest
 
@@ -15,7 +17,9 @@ from jaxvalve import valve as V
 from jaxvalve.simulation import build_scene_valve
 from jaxvalve.solvers import RESULTS, Stats
 
-SCENE = Scene(h=3.0, max_steps=100)
+#: the driver's own logic, without the fallback (tested below, with `FALLBACK`)
+SCENE = Scene(h=3.0, max_steps=100, fallback=False)
+FALLBACK = SCENE.replace(fallback=True)
 P_LIM = 20.0
 
 
@@ -145,3 +149,101 @@ def test_simulate_batch_and_stress_share_the_driver_past_a_limit_point():
     assert a.limit_pressure == b.limit_pressure
     assert f"no equilibrium above {a.limit_pressure:.4g}" in rec.cause
     np.testing.assert_allclose(bat[0].x, res.x, rtol=0, atol=1e-9)
+
+
+# ----------------------------------------------------------------------- the fallback
+class TwoLaws:
+    """`valve.close` stand-in that knows the contact law: on the smooth law it fails
+    (``smooth_fails``, e.g. a step cap) above ``smooth_limit`` mmHg, on the barrier law
+    it converges in 5 steps everywhere; logs (law, pressure) of every call."""
+
+    def __init__(self, smooth_limit=20.0, smooth_fails=RESULTS.max_steps_reached):
+        self.smooth_limit, self.smooth_fails, self.calls = smooth_limit, smooth_fails, []
+
+    def __call__(self, valve, material, p, *, x0, contact=None, **kw):
+        law = "barrier" if getattr(contact, "barrier", False) else "smooth"
+        self.calls.append((law, float(p)))
+        x = np.asarray(x0, float).copy()
+        x[:, 0] = np.asarray(valve.x_start, float)[:, 0] + p
+        if law == "barrier":
+            return _sol(x, RESULTS.successful, 5)
+        code = RESULTS.successful if p <= self.smooth_limit else self.smooth_fails
+        return _sol(x, code, 9)
+
+
+@pytest.fixture
+def two_laws(monkeypatch):
+    def make(**kw):
+        s = TwoLaws(**kw)
+        monkeypatch.setattr(closure.V, "close", s)
+        return s
+    return make
+
+
+def test_a_failed_smooth_closure_is_closed_again_on_the_barrier_law(valve, two_laws):
+    """The smooth law's 80 mmHg closure stops at its step cap: both loads are closed
+    again on the barrier law, from the smooth law's 3 mmHg state (no swing-shut), and
+    each report names the path and the failure."""
+    s = two_laws()
+    he, closed = closure.close_valve(valve, FALLBACK)
+    assert s.calls == [("smooth", 3.0), ("smooth", 80.0), ("barrier", 3.0), ("barrier", 80.0)]
+    for ls in (he, closed):
+        assert ls.converged and ls.report.path == "newton+barrier"
+        assert ls.report.steps == 5
+        assert ls.report.fallback.startswith("fire+smooth failed at 80 mmHg: "
+                                             "max_steps_reached")
+        assert "newton+barrier, after fire+smooth failed" in ls.report.describe()
+    np.testing.assert_allclose(closed.x[:, 0] - np.asarray(valve.x_start)[:, 0], 80.0)
+
+
+def test_a_failure_at_the_first_load_skips_the_smooth_laws_later_loads(valve, two_laws):
+    s = two_laws(smooth_limit=1.0)
+    he, closed = closure.close_valve(valve, FALLBACK)
+    assert s.calls == [("smooth", 3.0), ("barrier", 3.0), ("barrier", 80.0)]
+    assert he.converged and closed.converged
+    assert he.report.fallback.startswith("fire+smooth failed at 3 mmHg")
+
+
+def test_no_fallback_at_a_limit_point_or_when_switched_off(valve, two_laws, scripted):
+    """A limit point is the membrane's: the barrier law is not tried.  Nor is it with
+    ``fallback=False``, or in float32 (the barrier path is float64 only)."""
+    s = scripted(limit=P_LIM)
+    he, lim = closure.close_valve(valve, FALLBACK)
+    assert lim.limit_point and lim.report.path == "fire+smooth" and not lim.report.fallback
+    for scene in (SCENE, FALLBACK.replace(precision="float32")):
+        s = two_laws()
+        he, closed = closure.close_valve(valve, scene)
+        assert not closed.converged and closed.report.result == "max_steps_reached"
+        assert all(law == "smooth" for law, _ in s.calls) and not closed.report.fallback
+
+
+def test_the_fallback_counts_the_failed_attempts_time(valve, monkeypatch, two_laws):
+    two_laws()
+    ticks = iter(range(0, 1000, 10))           # every perf_counter call: +10 s
+    monkeypatch.setattr(closure, "time", types.SimpleNamespace(
+        perf_counter=lambda: float(next(ticks))))
+    he, closed = closure.close_valve(valve, FALLBACK)
+    # each close_load spans one interval of 10 s: the 80 mmHg report holds the smooth
+    # attempt's and the barrier closure's
+    assert closed.report.wall_s == pytest.approx(20.0)
+    assert he.report.wall_s == pytest.approx(20.0)
+
+
+def test_scene_fallback_is_validated():
+    from jaxvalve.errors import ParameterError
+    with pytest.raises(ParameterError, match="fallback must be true or false"):
+        Scene(fallback="yes")
+
+
+def test_a_batch_members_failed_first_attempt_falls_back(valve, two_laws):
+    """`simulate_batch` hands in its batched attempts: a member whose 80 mmHg attempt
+    stopped at the step cap is closed again on the barrier law, both loads."""
+    s = two_laws(smooth_limit=100.0)
+    x = np.asarray(valve.x_start, float)
+    given = (_sol(x + 3.0, RESULTS.successful, 11), _sol(x + 4.0, RESULTS.max_steps_reached,
+                                                         FALLBACK.max_steps))
+    he, closed = closure.close_valve(valve, FALLBACK, first=given)
+    assert s.calls == [("barrier", 3.0), ("barrier", 80.0)]
+    assert closed.converged and closed.report.path == "newton+barrier"
+    assert f"max_steps_reached, residual 1.00e-06, {FALLBACK.max_steps} steps" in \
+        closed.report.fallback

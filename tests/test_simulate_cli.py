@@ -40,7 +40,10 @@ def run(tmp_path_factory):
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(sim_mod, "simulate", spy)
         with contextlib.redirect_stdout(so), contextlib.redirect_stderr(se):
-            code = main(["simulate", str(toml), "--max-steps", "40", "--out", str(out)])
+            # --no-fallback: the FIRE path's own report of a closure stopped at its cap
+            # (the barrier fallback is tested in tests/test_closure_driver.py)
+            code = main(["simulate", str(toml), "--max-steps", "40", "--no-fallback",
+                         "--out", str(out)])
     assert len(captured) == 1
     return code, captured[0], out, so.getvalue(), se.getvalue()
 
@@ -63,7 +66,8 @@ def test_toml_scene_and_flag_override_are_honoured(run):
     data = json.loads((out / "metrics.json").read_text())
     assert data["scene"]["h"] == 3.0 and data["scene"]["g_c"] == 0.6   # from the TOML
     assert data["scene"]["max_steps"] == 40                             # flag wins
-    assert result.scene == Scene(h=3.0, g_c=0.6, max_steps=40)
+    assert data["scene"]["fallback"] is False                           # --no-fallback
+    assert result.scene == Scene(h=3.0, g_c=0.6, max_steps=40, fallback=False)
     assert [s["steps"] for s in data["solves"]] == [40, 40]
     assert data["metrics"]["g_c"] == 0.6
 

@@ -100,6 +100,11 @@ def add_scene_arguments(p):
                            help="equilibrium solver (default fire)")
             g.add_argument("--precision", choices=PRECISIONS,
                            help="floating type of the solve (default float64)")
+            g.add_argument("--no-fallback", dest="fallback", action="store_false",
+                           default=None,
+                           help="report a failed closure on the smooth law as it is, "
+                                "instead of closing the valve again on the barrier law "
+                                "(the default fallback)")
         for flag, typ, text in flags:
             g.add_argument(flag, type=typ, dest=_field(flag), metavar=typ.__name__.upper(),
                            help=text)
@@ -110,8 +115,8 @@ def make_scene(args):
     from ..errors import ParameterError
     from ..scene import Scene
 
-    names = ["model", "contact", "solver", "precision"] + [_field(f) for fl in _FLAGS.values()
-                                              for f, _, _ in fl]
+    names = ["model", "contact", "solver", "precision", "fallback"] + [
+        _field(f) for fl in _FLAGS.values() for f, _, _ in fl]
     kw = {k: getattr(args, k) for k in names if getattr(args, k) is not None}
     if args.root is not None:
         if len(args.root) == 1 and args.root[0] == "benchmark":

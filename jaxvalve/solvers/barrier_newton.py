@@ -437,6 +437,21 @@ def _push(model, topo, x, v, E, fp, res, scale, dhat, solver):
     return None
 
 
+def _start_failure(model, x):
+    """Why no step can start from x, or None: not finite (`RESULTS.nonfinite`), a
+    triangle past the material's stretch limit or collapsed (`RESULTS.stretch_limit`),
+    or an edge folded past `FOLD_DEG` (`RESULTS.stagnation`: the line search accepts
+    only admissible states, and every short step from a folded state is folded too)."""
+    if model.admissible(x):
+        return None
+    xj = jnp.asarray(x)
+    if not bool(jnp.all(jnp.isfinite(xj))):
+        return RESULTS.nonfinite
+    if not bool(assembly.stretch_admissible(xj, model.problem, model.params, model.ref)):
+        return RESULTS.stretch_limit
+    return RESULTS.stagnation
+
+
 # ------------------------------------------------------------------ the solve
 @dataclasses.dataclass
 class BarrierLog:
@@ -474,6 +489,13 @@ def solve_barrier(problem, params, x0, solver: BarrierNewton, topo: BarrierTopol
     scale = scale if scale > 0 else 1.0
     res = float(np.linalg.norm(F)) / scale
     log = BarrierLog()
+    start = _start_failure(model, x)
+    if start is not None:     # every step must stay admissible: none can leave this start
+        log.residual.append(res)
+        stats = Stats(steps=jnp.asarray(0), force_evals=jnp.asarray(evals),
+                      hvps=jnp.asarray(0), residual=jnp.asarray(res))
+        return Solution(x=jnp.asarray(x), result=jnp.asarray(int(start)), stats=stats,
+                        nbrs=pairs), log
     x_start, escape = x.copy(), float(escape_distance(x))
     tau = solver.tau0
     pushed = False        # since a push: every step must lower the merit (below)
