@@ -90,7 +90,7 @@ def main(argv=None):
         "metrics+partials": (ev._direct_jit._plain,
                              (jnp.asarray(rab), {"closed": sol.x}, e.states, e.plans,
                               jnp.asarray(ev.area_ref))),
-        "residual_vjp": (adjoint.residual_vjp._plain, (sol.x, prob, params, sol.nbrs, mu)),
+        "residual_vjp": (adjoint._residual_vjp._plain, (sol.x, prob, params, sol.nbrs, mu)),
         "blocks": (tangent._blocks._plain, (sol.x, prob, params, sol.nbrs, hn, ht)),
         "design_pullback": (ev._design_pullback,
                             (jnp.asarray(rab), sol.x, params.ref, mu)),

@@ -19,10 +19,21 @@ positions of x0 get g + mu . dR/dx there).  The solve runs in one of two ways:
 
 `residual_vjp` is the one compiled program of the residual's VJP that the LU backend and
 the optimiser's pullback to the design parameters share.
+
+On the barrier contact (``nbrs`` a `jaxvalve.contact.ipc_pairs.BarrierPairs`, the pair
+list of a barrier closure) the LU backend solves with the *exact* Jacobian that the
+barrier solver assembles (`solvers.barrier_newton`: membrane, bending and pair Hessians,
+the follower pressure's unsymmetric part), by its sparse LU, and checks the solution with
+the residual's VJP; that VJP holds the barrier energy over the fixed pair list, whose
+collision weights are functions of the reference coordinates (`contact.barrier.
+collision_weights`), so derivatives with respect to the template include them.  The pair
+list is exact near an equilibrium: a pair enters the barrier's range at d_hat with zero
+energy, force and stiffness (the barrier is C2 there).
 """
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 
 import jax
@@ -102,21 +113,105 @@ def cotangents(problem, params, y, nb, delta, g):
     return gp, (g + gx) * problem.fixed[:, None]
 
 
-@quick_jit
 def residual_vjp(x, problem, params, nbrs, v):
     """(v . dR/dx (N, 3), v . dR/dparams (a `Params`)) for the residual R(x, params), v
     (N, 3).  One compiled program serves the adjoint's K^T products (`adjoint_solve`) and
-    the pullback of an adjoint to the parameters (`optimize.Evaluator`)."""
+    the pullback of an adjoint to the parameters (`optimize.Evaluator`).  nbrs: the
+    closure's contact pair list (`BarrierPairs` on the barrier contact)."""
+    from .contact.ipc_pairs import BarrierPairs
+    if isinstance(nbrs, BarrierPairs):
+        rows = _barrier_rows(problem, nbrs)
+        return _barrier_residual_vjp(x, problem, params, rows, v, n_edges=rows.pop("n"))
+    return _residual_vjp(x, problem, params, nbrs, v)
+
+
+@quick_jit
+def _residual_vjp(x, problem, params, nbrs, v):
     def R(z, p):
         return assembly.residual(z, problem, p, assembly.prepare(problem, p), nbrs)
     with whole_lists():
         return jax.vjp(R, x, params)[1](v)
 
 
+#: rows of a barrier pair list are padded to a multiple of this (padding rows weigh 0),
+#: so that closures whose lists differ in length share compiled programs
+BARRIER_PAD = 512
+
+
+def _pad(a, n):
+    out = np.zeros((n,) + a.shape[1:], a.dtype)
+    out[:len(a)] = a
+    return out
+
+
+def _barrier_rows(problem, pairs) -> dict:
+    """The pair list as padded integer arrays, with the edge map of the mesh."""
+    from .mesh import unique_edges
+    edges, tri_edge = unique_edges(np.asarray(problem.triangles))
+    P, Q = len(pairs.pt), len(pairs.ee)
+    p_, q_ = (-(-max(k, 1) // BARRIER_PAD) * BARRIER_PAD for k in (P, Q))
+    return dict(pt=_pad(np.asarray(pairs.pt, np.int64), p_),
+                pt_on=_pad(np.ones(P), p_), ee=_pad(np.asarray(pairs.ee, np.int64), q_),
+                ee_edges=_pad(np.asarray(pairs.ee_edges, np.int64), q_),
+                ee_on=_pad(np.ones(Q), q_), tri_edge=tri_edge.astype(np.int64),
+                n=int(len(edges)))
+
+
+def barrier_energy(y, problem, params, rows, n_edges):
+    """Strain, bending and barrier energy (N mm) at y (N, 3) over a padded pair list
+    (`_barrier_rows`), the collision weights from ``params.ref``."""
+    from .contact.barrier import collision_weights, pair_weights
+    ref = assembly.prepare(problem, params)
+    e = assembly.conservative_energy(y, problem, params.replace(contact=None), ref)
+    nw, ew, l2 = collision_weights(params.ref, problem.triangles, rows["tri_edge"], n_edges)
+    pt_w, ee_w, ee_eps = pair_weights(nw, ew, l2, rows["pt"][:, 0], rows["ee_edges"])
+    return e + params.contact.energy_pairs(y, rows["pt"], pt_w * rows["pt_on"], rows["ee"],
+                                           ee_w * rows["ee_on"], ee_eps)
+
+
+@functools.partial(jax.jit, static_argnames=("n_edges",))
+def _barrier_residual_vjp(x, problem, params, rows, v, n_edges):
+    def R(z, p):
+        f = (assembly.pressure_force(z, problem.triangles, p.pressure)
+             - jax.grad(barrier_energy)(z, problem, p, rows, n_edges))
+        return f * problem.free[:, None]
+    return jax.vjp(R, x, params)[1](v)
+
+
+def _solve_barrier_lu(problem, params, x, pairs, g, rtol):
+    """`solve_lu` on the barrier contact: the exact Jacobian's sparse LU (module
+    docstring)."""
+    from .solvers.barrier_newton import _Model
+    t0 = time.perf_counter()
+    free = np.asarray(problem.free)
+    fdof = np.repeat(free, 3)
+    N = problem.n_nodes
+    _, Kx = _Model(problem, params, None).tangent(np.asarray(x, float), pairs, exact=True)
+    b = np.asarray(g, float).reshape(-1)[fdof]
+    nb = float(np.linalg.norm(b))
+    if nb == 0.0:
+        return np.zeros((N, 3)), AdjointReport(0, 0.0, time.perf_counter() - t0, Kx.nnz)
+    mu_f = spla.splu(Kx.T.tocsc(), permc_spec="MMD_AT_PLUS_A").solve(b)
+    mu = np.zeros(3 * N)
+    mu[fdof] = mu_f
+    # the check: K^T mu by the residual's VJP, independent of the assembled matrix
+    gx, _ = residual_vjp(jnp.asarray(x), problem, params, pairs, jnp.asarray(mu.reshape(N, 3)))
+    res = float(np.linalg.norm(-np.asarray(gx).reshape(-1)[fdof] - b) / nb)
+    rep = AdjointReport(0, res, time.perf_counter() - t0, int(Kx.nnz))
+    if not np.isfinite(res) or res > 100 * rtol:
+        raise ConvergenceError(f"adjoint solve on the barrier contact: the exact Jacobian's "
+                               f"solution has a relative residual of {res:.3e} by the "
+                               f"residual's VJP (tolerance {100 * rtol:g})")
+    return mu.reshape(N, 3), rep
+
+
 def solve_lu(problem, params, x, nbrs, g, *, rtol=1e-10, maxiter=300):
     """mu (N, 3) with K^T mu = g on the free dofs (K = -dR/dx at the equilibrium x); mu is
     zero on fixed nodes.  GMRES (scipy) on exact VJPs, preconditioned by the sparse LU of
     the assembled approximation of K^T.  Returns (mu, `AdjointReport`)."""
+    from .contact.ipc_pairs import BarrierPairs
+    if isinstance(nbrs, BarrierPairs):
+        return _solve_barrier_lu(problem, params, x, nbrs, g, rtol)
     t0 = time.perf_counter()
     x = jnp.asarray(x)
     free = np.asarray(problem.free)

@@ -47,7 +47,7 @@ from .stall import stopped_cause
 from .timing import compile_timer
 
 __all__ = ["SolveReport", "LoadSolve", "close_load", "close_valve", "swing_shut", "fall_back",
-           "path_name"]
+           "separated", "path_name"]
 
 
 def _quiet(msg):
@@ -195,7 +195,7 @@ def close_load(valve, scene: Scene, pressure: float, x0, *, p_from: float = 0.0,
     return LoadSolve(report=rep, x=x, solution=sol, ramp=rr)
 
 
-def swing_shut(valve, scene: Scene, x, *, material=None, say=_quiet):
+def swing_shut(valve, scene: Scene, x, *, material=None, ref=None, say=_quiet):
     """The barrier path's start: the valve swung shut at ``scene.he_pressure`` by FIRE on
     the smooth penalty law (to a relative residual of at most 1e-4), where that closure
     converges to a state with no crossing and every barrier distance positive; else
@@ -203,7 +203,7 @@ def swing_shut(valve, scene: Scene, x, *, material=None, say=_quiet):
     its line search at once on soft leaflets (Table 4: no progress in 500 iterations),
     while FIRE's dynamics swing them shut; from FIRE's state, Newton re-settles the valve
     on the barrier in a few steps.  The final states are equilibria of the barrier law
-    either way."""
+    either way.  ref: a mapped reference (`valve.close`)."""
     from .contact.ipc_pairs import build_pairs
     material = scene.material() if material is None else material
     start = scene.replace(contact="smooth", solver="fire", rtol=max(scene.rtol, 1e-4))
@@ -213,7 +213,7 @@ def swing_shut(valve, scene: Scene, x, *, material=None, say=_quiet):
     sol = V.close(valve, material, scene.he_pressure, solver=start.make_solver(),
                   contact=start.contact_law(), thickness=scene.thickness,
                   fibre_angle=np.deg2rad(scene.fibre_angle), bending=scene.bending_law(),
-                  x0=x, throw=False, check_state=True)
+                  x0=x, throw=False, check_state=True, ref=ref)
     y = np.asarray(sol.x, np.float64)
     ok = (sol.converged and np.all(np.isfinite(y))
           and build_pairs(valve.barrier_topology, y, 1.0).min_distance > 0)
@@ -288,7 +288,7 @@ def _falls_back(scene: Scene, loads) -> LoadSolve | None:
     return None
 
 
-def _separated(valve, x) -> bool:
+def separated(valve, x) -> bool:
     """x is a start the barrier closures can move from: finite, no collapsed or folded
     triangle (`checks.triangle_checks`: the barrier solver's steps keep every edge below
     the fold limit), no crossing leaflets, every barrier pair apart."""
@@ -306,7 +306,7 @@ def fall_back(valve, scene: Scene, loads, failed: LoadSolve, *, material=None, x
     """The valve closed again on the barrier law (projected Newton), every load, after
     ``failed`` (a `LoadSolve` of ``loads``, the scene's own attempt) did not converge.
     The barrier closures start from the first load's state of ``loads`` where it is
-    separated (`_separated`: the smooth law's closure, converged or not, is the swing
+    separated (`separated`: the smooth law's closure, converged or not, is the swing
     shut that the barrier path needs), else from x0 (default the placement) as it is:
     `swing_shut` would repeat the smooth closure that failed.  Each report names the
     failure (``fallback``) and includes the failed attempt's time."""
@@ -315,7 +315,7 @@ def fall_back(valve, scene: Scene, loads, failed: LoadSolve, *, material=None, x
     say(f"fallback: {why}; closing again on the barrier law (newton solver)")
     barrier = scene.replace(contact="barrier", solver="newton")
     start = np.asarray(loads[0].x, np.float64)
-    if _separated(valve, start):
+    if separated(valve, start):
         x = start
         say(f"  the barrier closures start from the {path_name(scene)} state at "
             f"{loads[0].report.pressure:g} mmHg")

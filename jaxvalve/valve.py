@@ -203,8 +203,13 @@ def close(valve: Valve, material, pressure_mmhg=80.0, *, solver=None, contact=No
         if not isinstance(solver, BarrierNewton):
             raise ParameterError("the barrier contact is solved by BarrierNewton; got "
                                  f"{type(solver).__name__}")
+        topo = valve.barrier_topology
+        if ref is not None:      # a mapped template: its own collision weights
+            from .contact.ipc_pairs import barrier_topology
+            topo = barrier_topology(valve.triangles, valve.body, np.asarray(ref),
+                                    np.asarray(valve.problem.fixed), valve.x_placed)
         sol, _ = solve_barrier(valve.problem, params, np.asarray(x0, np.float64), solver,
-                               valve.barrier_topology)
+                               topo)
         if throw and not check_state and not sol.converged:
             raise ConvergenceError(f"valve closure at {pressure_mmhg:g} mmHg did not "
                                    f"converge: {sol.describe()}", sol)

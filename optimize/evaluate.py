@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxvalve import equilibrium
-from jaxvalve.closure import close_load
+from jaxvalve.closure import close_load, separated, swing_shut
 from jaxvalve import valve as V
 from jaxvalve.coaptation import annulus_level
 from jaxvalve.coaptation.smooth import smooth_metrics, smooth_plan
@@ -86,9 +86,10 @@ class Evaluator:
     def __init__(self, scene, objective: Objective, *, eps: float = 0.1,
                  min_angle: float = 15.0, progress=None, mesh_at=None,
                  warm_start: bool = True):
-        if scene.solver != "fire" or scene.contact != "smooth":
-            raise ParameterError("optimisation needs solver='fire' and contact='smooth' "
-                                 "(the paper's contact law has no adjoint)")
+        if (scene.solver, scene.contact) not in (("fire", "smooth"), ("newton", "barrier")):
+            raise ParameterError("optimisation needs solver='fire' with contact='smooth', or "
+                                 "solver='newton' with contact='barrier' (the paper's "
+                                 "contact law has no adjoint)")
         if not (0 < eps <= 0.5):
             raise ParameterError(f"eps must be in (0, 0.5] mm; got {eps}")
         self.scene, self.objective, self.eps, self.min_angle = scene, objective, eps, min_angle
@@ -208,18 +209,34 @@ class Evaluator:
             warm = None
         states, plans, solves, metrics = {}, {}, [], {}
         for load in self.loads:
+            p_from = 0.0           # the closure's start is an equilibrium at p_from mmHg
             if isinstance(warm, dict):                 # {load: x (N, 3)}, e.g. a checkpoint
                 seed = warm[load]
             elif warm is not None:
                 seed = warm.states[load][1].x
+            elif self.scene.contact == "barrier" and states:
+                # the barrier path closes in turn, as `simulate` does: 80 mmHg from the
+                # 3 mmHg equilibrium
+                seed, p_from = states[LOAD_ORDER[0]][1].x, self.pressure[LOAD_ORDER[0]]
             else:
                 seed = self.valve.x_start   # not the other load's state: closing at
-                #                             80 mmHg from the 3 mmHg state chatters
+                #                             80 mmHg from the 3 mmHg state chatters (FIRE)
             x0 = self._x_fixed_jit(th, jnp.asarray(seed))
+            if self.scene.contact == "barrier" and not separated(self.valve, x0):
+                # the barrier closure needs a start with every pair apart: an earlier
+                # state moved to another template may touch
+                seed = self.valve.x_start
+                x0 = self._x_fixed_jit(th, jnp.asarray(seed))
+            if self.scene.contact == "barrier" and seed is self.valve.x_start:
+                # from the placement, swung shut first, as `simulate` does: from the open
+                # valve the 80 mmHg closure at (12.5, 7.5, 15.5) missed rtol 1e-9 within
+                # its step budget; swung shut, 11 and 46 Newton steps
+                x0 = swing_shut(self.valve, self.scene, x0, ref=self._ref_jit(th),
+                                material=self.material if material is None else material)
             # the one closure driver, with the mapped reference: the state check
             # (crossed leaflets, folds), continuation where a solve runs away, the stall
             # probe for a solve stopped at its step cap
-            ls = close_load(self.valve, self.scene, self.pressure[load], x0,
+            ls = close_load(self.valve, self.scene, self.pressure[load], x0, p_from=p_from,
                             material=self.material if material is None else material,
                             ref=self._ref_jit(th), whole_lists=self.whole_lists)
             sol, rep = ls.solution, ls.report
@@ -239,7 +256,8 @@ class Evaluator:
         # the metrics, the objective and its partial derivatives at fixed states: one
         # program (the backward pass costs about as much as the metrics themselves)
         xs = {l: states[l][1].x for l in self.loads}
-        (_, (terms, m)), (g, gx) = self._direct_jit(jnp.asarray(rab), xs, states, plans,
+        starts = {l: (states[l][0], None) for l in self.loads}   # the direct path's x0 only
+        (_, (terms, m)), (g, gx) = self._direct_jit(jnp.asarray(rab), xs, starts, plans,
                                                     jnp.asarray(self.area_ref))
         metrics = {k: float(m[k]) for k in METRICS if k in m}       # METRICS order
         terms = {k: float(v) for k, v in terms.items()}
@@ -409,6 +427,9 @@ class Evaluator:
         rab = jnp.asarray(ev.rab)
         area_ref = jnp.asarray(self.area_ref)
         if adjoint == "jax":
+            if self.scene.contact == "barrier":
+                raise ParameterError("adjoint='jax' (equilibrium.implicit_state) is not built "
+                                     "for the barrier contact; use adjoint='lu'")
             (v, _), g = self._grad_jit(rab, ev.states, ev.plans, area_ref)
             return float(v), np.asarray(g), {"adjoint": []}
         if adjoint != "lu":

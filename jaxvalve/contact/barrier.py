@@ -48,9 +48,10 @@ import numpy as np
 
 from ..errors import ParameterError
 from .ipc_distance import (edge_edge_cross2, edge_edge_distance2, mollifier,
-                           point_triangle_distance2)
+                           mollifier_threshold, point_triangle_distance2)
 
-__all__ = ["BarrierContact", "barrier", "pt_energies", "ee_energies"]
+__all__ = ["BarrierContact", "barrier", "pt_energies", "ee_energies", "collision_weights",
+           "pair_weights"]
 
 DEFAULT_DHAT = 0.2        # mm
 DEFAULT_KAPPA = 1e-3      # MPa
@@ -102,6 +103,34 @@ class BarrierContact:
         arrays) at positions x (N, 3)."""
         return (jnp.sum(pt_energies(self, x, pt, pt_w))
                 + jnp.sum(ee_energies(self, x, ee, ee_w, ee_eps)))
+
+
+def collision_weights(ref, triangles, tri_edge, n_edges):
+    """(node_w (N,) mm^2, edge_w (E,) mm^2, edge_len2 (E,) mm^2) of the reference
+    coordinates ref (N, 2|3) mm: a node's weight a_p / 2 (a_p a third of the area of its
+    triangles), an edge's A_e / 4 (A_e a third of the area of the triangles at it), and
+    the edges' squared rest lengths (the mollifier's thresholds).  triangles (M, 3),
+    tri_edge (M, 3) the edge row of each triangle's edge k (opposite vertex k,
+    `mesh.unique_edges`).  Differentiable in ref (the optimiser's adjoint: the weights
+    move with the template)."""
+    X = ref if ref.shape[1] == 3 else jnp.concatenate([ref, jnp.zeros_like(ref[:, :1])], 1)
+    Y = X[triangles]
+    area = 0.5 * jnp.linalg.norm(jnp.cross(Y[:, 1] - Y[:, 0], Y[:, 2] - Y[:, 0]), axis=1)
+    third = jnp.repeat(area[:, None] / 3.0, 3, axis=1)
+    node_a = jnp.zeros(X.shape[0], X.dtype).at[triangles].add(third)
+    edge_a = jnp.zeros(n_edges, X.dtype).at[tri_edge].add(third)
+    # edge k of a triangle joins its vertices k+1 and k+2
+    d = Y[:, [2, 0, 1]] - Y[:, [1, 2, 0]]
+    len2 = jnp.zeros(n_edges, X.dtype).at[tri_edge].set(jnp.sum(d * d, axis=-1))
+    return node_a / 2.0, edge_a / 4.0, len2
+
+
+def pair_weights(node_w, edge_w, edge_len2, pt_node, ee_edges):
+    """(pt_w (P,), ee_w (Q,), ee_eps (Q,)) of point-triangle pairs of nodes pt_node (P,)
+    and edge-edge pairs of edge rows ee_edges (Q, 2), from `collision_weights`."""
+    ea, eb = ee_edges[:, 0], ee_edges[:, 1]
+    return (node_w[pt_node], edge_w[ea] + edge_w[eb],
+            mollifier_threshold(jnp.sqrt(edge_len2[ea]), jnp.sqrt(edge_len2[eb])))
 
 
 def _rows(x, idx):

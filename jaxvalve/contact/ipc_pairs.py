@@ -20,6 +20,7 @@ from scipy.spatial import cKDTree
 
 from ..errors import ParameterError
 from ..mesh import unique_edges
+from .barrier import collision_weights
 from .ipc_distance import (mollifier_threshold, point_triangle_distance2_np,
                            segment_distance2_np)
 
@@ -31,14 +32,16 @@ __all__ = ["BarrierTopology", "BarrierPairs", "barrier_topology", "build_pairs",
 class BarrierTopology:
     """Static data of the barrier contact (NumPy).
 
-    triangles (M, 3), edges (E, 2) int; body (N,), tri_body (M,), edge_body (E,) leaflet
-    ids; node_w (N,) mm^2 (a_p / 2) and edge_w (E,) mm^2 (A_e / 4) the collision weights
-    (`jaxvalve.contact.barrier`); edge_eps (E,) mm^2, the edges' squared rest lengths (the
-    mollifier threshold of a pair is 1e-3 la^2 lb^2); pin (N,) int, the commissure point a
-    sutured node is sewn to, or -1; fixed (N,) bool."""
+    triangles (M, 3), edges (E, 2) int, tri_edge (M, 3) the edge row of each triangle's
+    edge k; body (N,), tri_body (M,), edge_body (E,) leaflet ids; node_w (N,) mm^2
+    (a_p / 2) and edge_w (E,) mm^2 (A_e / 4) the collision weights, edge_len2 (E,) mm^2
+    the edges' squared rest lengths (the mollifier threshold of a pair is 1e-3 la^2 lb^2),
+    all three from `jaxvalve.contact.barrier.collision_weights`; pin (N,) int, the
+    commissure point a sutured node is sewn to, or -1; fixed (N,) bool."""
 
     triangles: np.ndarray
     edges: np.ndarray
+    tri_edge: np.ndarray
     body: np.ndarray
     tri_body: np.ndarray
     edge_body: np.ndarray
@@ -59,7 +62,9 @@ class BarrierPairs:
 
     pt (P, 4) [node, t0, t1, t2]; pt_w (P,) mm^2; pt_d2 (P,) mm^2 squared distance at the
     state of the build.  ee (Q, 4) [a0, a1, b0, b1]; ee_w (Q,) mm^2; ee_eps (Q,) mm^4
-    mollifier thresholds; ee_d2 (Q,) mm^2.  cutoff (mm)."""
+    mollifier thresholds; ee_d2 (Q,) mm^2.  cutoff (mm).  ee_edges (Q, 2): the rows of
+    the two edges in the topology's edge list (the weights' sources,
+    `jaxvalve.contact.barrier.pair_weights`)."""
 
     pt: np.ndarray
     pt_w: np.ndarray
@@ -69,6 +74,8 @@ class BarrierPairs:
     ee_eps: np.ndarray
     ee_d2: np.ndarray
     cutoff: float
+    ee_edges: np.ndarray = dataclasses.field(
+        default_factory=lambda: np.zeros((0, 2), np.int64))
 
     @property
     def min_distance(self) -> float:
@@ -80,7 +87,7 @@ class BarrierPairs:
         """The pairs whose squared distances (given, at another state) are < cutoff^2."""
         a, b = d2_pt < cutoff * cutoff, d2_ee < cutoff * cutoff
         return BarrierPairs(self.pt[a], self.pt_w[a], d2_pt[a], self.ee[b], self.ee_w[b],
-                            self.ee_eps[b], d2_ee[b], float(cutoff))
+                            self.ee_eps[b], d2_ee[b], float(cutoff), self.ee_edges[b])
 
 
 def barrier_topology(triangles, body, ref, fixed, x0, pin_tol=1e-9) -> BarrierTopology:
@@ -94,16 +101,9 @@ def barrier_topology(triangles, body, ref, fixed, x0, pin_tol=1e-9) -> BarrierTo
     fixed = np.asarray(fixed, bool)
     x0 = np.asarray(x0, float)
     n = body.shape[0]
-    X = ref if ref.shape[1] == 3 else np.column_stack([ref, np.zeros(n)])
-    area = 0.5 * np.linalg.norm(np.cross(X[tri[:, 1]] - X[tri[:, 0]],
-                                         X[tri[:, 2]] - X[tri[:, 0]]), axis=1)
-    node_a = np.zeros(n)
-    np.add.at(node_a, tri, np.repeat(area[:, None] / 3.0, 3, axis=1))
     edges, tri_edge = unique_edges(tri)
-    edges = edges.astype(np.int64)
-    edge_a = np.zeros(len(edges))
-    np.add.at(edge_a, tri_edge, np.repeat(area[:, None] / 3.0, 3, axis=1))
-    len2 = np.sum((X[edges[:, 1]] - X[edges[:, 0]]) ** 2, axis=1)
+    edges, tri_edge = edges.astype(np.int64), tri_edge.astype(np.int64)
+    node_w, edge_w, len2 = map(np.asarray, collision_weights(ref, tri, tri_edge, len(edges)))
     pin = np.full(n, -1, np.int64)
     idx = np.flatnonzero(fixed)
     if idx.size:
@@ -114,9 +114,10 @@ def barrier_topology(triangles, body, ref, fixed, x0, pin_tol=1e-9) -> BarrierTo
             p = max(pin[a], pin[b])
             p = k if p < 0 else p
             pin[a] = pin[b] = p
-    return BarrierTopology(triangles=tri, edges=edges, body=body, tri_body=body[tri[:, 0]],
-                           edge_body=body[edges[:, 0]], node_w=node_a / 2.0,
-                           edge_w=edge_a / 4.0, edge_len2=len2, pin=pin, fixed=fixed)
+    return BarrierTopology(triangles=tri, edges=edges, tri_edge=tri_edge, body=body,
+                           tri_body=body[tri[:, 0]], edge_body=body[edges[:, 0]],
+                           node_w=node_w, edge_w=edge_w, edge_len2=len2, pin=pin,
+                           fixed=fixed)
 
 
 def _shares_pin(pin, a, b):
@@ -196,4 +197,4 @@ def build_pairs(topo: BarrierTopology, x, cutoff: float) -> BarrierPairs:
         ee_w=topo.edge_w[ea_eb[:, 0]] + topo.edge_w[ea_eb[:, 1]],
         ee_eps=mollifier_threshold(np.sqrt(topo.edge_len2[ea_eb[:, 0]]),
                                    np.sqrt(topo.edge_len2[ea_eb[:, 1]])),
-        ee_d2=ee_d2, cutoff=cutoff)
+        ee_d2=ee_d2, cutoff=cutoff, ee_edges=ea_eb)
