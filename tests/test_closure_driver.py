@@ -51,13 +51,18 @@ def _sol(x, code, steps, residual=1e-6):
                                        residual=residual))
 
 
-@pytest.fixture
-def scripted(monkeypatch):
+def _stand_in(monkeypatch, cls):
+    """A factory of ``cls`` stand-ins for `valve.close`, each installed as it is made."""
     def make(**kw):
-        s = Scripted(**kw)
+        s = cls(**kw)
         monkeypatch.setattr(closure.V, "close", s)
         return s
     return make
+
+
+@pytest.fixture
+def scripted(monkeypatch):
+    return _stand_in(monkeypatch, Scripted)
 
 
 def test_loads_in_turn_each_from_the_state_before(valve, scripted):
@@ -173,11 +178,7 @@ class TwoLaws:
 
 @pytest.fixture
 def two_laws(monkeypatch):
-    def make(**kw):
-        s = TwoLaws(**kw)
-        monkeypatch.setattr(closure.V, "close", s)
-        return s
-    return make
+    return _stand_in(monkeypatch, TwoLaws)
 
 
 def test_a_failed_smooth_closure_is_closed_again_on_the_barrier_law(valve, two_laws):
