@@ -117,30 +117,32 @@ def test_exact_jacobian_matches_finite_differences(valve, closed):
     assert abs(K - K.T).max() <= 1e-12 * abs(K).max()
 
 
-def test_normal_barrier_blocks_are_the_exact_hessian_along_the_normal():
-    """The far-field tangent's barrier blocks (`_normal_blocks`): positive semi-definite,
-    rank one, and equal to the exact Hessian of the pair's energy along the contact
-    normal (a node above a triangle's interior, moved along the face normal)."""
+def test_projected_barrier_blocks_clamp_only_the_negative_curvature():
+    """The tangent's barrier blocks (`_pt_blocks`): the exact Hessian of the pair's energy
+    (against jax.hessian of the energy) and its projection, which is positive
+    semi-definite and differs from it by a positive semi-definite matrix (only negative
+    eigenvalues are raised); stiff along the contact normal; zero beyond d_hat."""
     import jax
     from jaxvalve.contact.barrier import pt_energies
-    from jaxvalve.solvers.barrier_newton import _pt_blocks, _pt_normal_blocks
+    from jaxvalve.solvers.barrier_newton import _pt_blocks
     law = BarrierContact()
     w = np.array([0.7])
     rows = np.array([[0, 1, 2, 3]])
     for h in (0.01, 0.05, 0.15):
-        x = np.array([[0.3, 0.2, h], [0, 0, 0], [1, 0, 0], [0, 1, 0]], float)
-        Hn = np.asarray(_pt_normal_blocks(law, jnp.asarray(x), rows, w))[0]
+        x = np.array([[0.3, 0.2, h], [0, 0, 0], [1, 0, 0.2], [0, 1, -0.1]], float)
+        Hp, He = (np.asarray(a)[0] for a in _pt_blocks(law, jnp.asarray(x), rows, w))
         Hx = np.asarray(jax.hessian(lambda y: pt_energies(
             law, y.reshape(4, 3), jnp.arange(4)[None], w)[0])(jnp.asarray(x.reshape(-1))))
-        Hp = np.asarray(_pt_blocks(law, jnp.asarray(x), rows, w)[0])[0]
+        np.testing.assert_allclose(He, Hx, rtol=1e-9, atol=1e-12 * np.abs(Hx).max())
+        scale = np.abs(Hx).max()
+        assert np.linalg.eigvalsh(Hx)[0] < -1e-6 * scale      # indefinite: a real test
+        assert np.linalg.eigvalsh(Hp)[0] >= -1e-10 * scale
+        assert np.linalg.eigvalsh(Hp - Hx)[0] >= -1e-10 * scale
         n = np.zeros(12)
         n[2], n[[5, 8, 11]] = 1.0, -1.0 / 3.0                 # node up, triangle down
-        np.testing.assert_allclose(n @ Hn @ n, n @ Hx @ n, rtol=1e-10)
-        ev = np.linalg.eigvalsh(Hn)
-        assert ev[0] >= -1e-12 * ev[-1] and np.sum(ev > 1e-9 * ev[-1]) == 1
         assert n @ Hp @ n > 0
     x = np.array([[0.3, 0.2, 0.25], [0, 0, 0], [1, 0, 0], [0, 1, 0]], float)   # beyond d_hat
-    assert not np.any(np.asarray(_pt_normal_blocks(law, jnp.asarray(x), rows, w)))
+    assert not np.any(np.asarray(_pt_blocks(law, jnp.asarray(x), rows, w)[0]))
 
 
 def test_tangent_is_symmetric_and_its_membrane_part_semidefinite(valve, closed):

@@ -50,8 +50,6 @@ import scipy.sparse.linalg as spla
 from .. import assembly, tangent
 from ..contact import ccd
 from ..contact.barrier import ee_energies, pt_energies
-from ..contact.ipc_distance import (edge_edge_cross2, edge_edge_distance2, mollifier,
-                                    point_triangle_distance2)
 from ..contact.ipc_pairs import BarrierTopology, build_pairs, pair_distances2
 from ..checks import FOLD_DEG
 from ..errors import ParameterError
@@ -179,43 +177,6 @@ def _ee_blocks(law, x, rows, w, eps):
     return _psd(H), H
 
 
-def _normal_blocks(law, s, g, wm):
-    """(P, 12, 12) barrier Hessians along the contact normal only, f''(d) grad d grad d^T,
-    for f(d) = kappa d_hat wm B(d^2 / d_hat^2), from the squared distance s (P,) and its
-    gradient g = grad s (P, 12), with f'' clamped at 0: positive semi-definite by
-    construction, with no eigendecomposition (grad d = g / (2 d))."""
-    dh2 = law.dhat * law.dhat
-    act = (s < dh2) & (wm > 0)
-    z = jnp.where(act, s / dh2, 0.5)
-    b1 = -2.0 * (z - 1.0) * jnp.log(z) - (z - 1.0) ** 2 / z                  # B'(z)
-    b2 = -2.0 * jnp.log(z) - 4.0 * (z - 1.0) / z + (z - 1.0) ** 2 / z ** 2   # B''(z)
-    fdd = 2.0 * b1 / dh2 + 4.0 * z * b2 / dh2             # d^2/dd^2 B(d^2/dh2) at d^2 = s
-    c = jnp.where(act, law.stiffness * law.dhat * wm * jnp.maximum(fdd, 0.0)
-                  / (4.0 * jnp.where(act, s, 1.0)), 0.0)
-    return c[:, None, None] * g[:, :, None] * g[:, None, :]
-
-
-@jax.jit
-def _pt_normal_blocks(law, x, rows, w):
-    def s_of(x12):
-        q = x12.reshape(4, 3)
-        return point_triangle_distance2(q[0], q[1], q[2], q[3])
-    s, g = jax.vmap(jax.value_and_grad(s_of))(x[rows].reshape(-1, 12))
-    return _normal_blocks(law, s, g, w)
-
-
-@jax.jit
-def _ee_normal_blocks(law, x, rows, w, eps):
-    def s_of(x12):
-        q = x12.reshape(4, 3)
-        return edge_edge_distance2(q[0], q[1], q[2], q[3])
-    s, g = jax.vmap(jax.value_and_grad(s_of))(x[rows].reshape(-1, 12))
-    q = x[rows]
-    m = mollifier(edge_edge_cross2(q[:, 0], q[:, 1], q[:, 2], q[:, 3]),
-                  jnp.where(w > 0, eps, 1.0))
-    return _normal_blocks(law, s, g, w * m)
-
-
 def _chunks(*arrays):
     """Yield the arrays cut into CHUNK rows, the last chunk padded with zeros."""
     n = arrays[0].shape[0]
@@ -250,18 +211,17 @@ class _Model:
         self.n = self.free.shape[0]
 
     def tangent(self, x, pairs, exact=False):
-        """Projected tangent (nf, nf) CSR over the free dofs at x, with the pair list.
+        """Projected tangent (nf, nf) CSR over the free dofs at x, with the pair list:
+        the element, hinge and pair Hessians each projected to positive semi-definite.
 
-        Without ``exact``, the barrier's part is its Hessian along the contact normals
-        (`_normal_blocks`: no eigendecomposition; on the mass-spring benchmark valve at 80
-        mmHg its residuals match the projected pair Hessians' to two digits for 20 steps
-        and reach the 0.05 where the exact model takes over in 37 steps against 34, at a
-        third of the tangent's cost).
-        With ``exact``: the pair (projected, exact), the projected one with the pairs'
-        full Hessians projected to PSD, the exact one -dF/dx of the total force
-        (unsymmetric: the follower pressure) from the same element Hessians; near
-        equilibrium the normal-only model slowed GMRES (mass-spring lingered near 1.5e-3
-        and took 106 steps at 80 mmHg instead of 53).
+        The pairs' Hessians are projected in full.  A cheaper model, the barrier's Hessian
+        along the contact normal only (rank one per pair, PSD without an
+        eigendecomposition, a third of the tangent's cost), left soft valves short of
+        equilibrium: the Table 4 cell E1 = 0.18, E2 = 0.3 MPa (h = 1.5 mm, 80 mmHg from
+        the 3 mmHg state) ended its 200 steps in a two-state cycle at a residual of
+        1.7e-3, where the full projection converges in 92 steps.
+        With ``exact``: the pair (projected, exact), the exact one -dF/dx of the total
+        force (unsymmetric: the follower pressure) from the same element Hessians.
 
         Each kernel holds one batched eigendecomposition and is waited for before the next
         starts: a program with two of them (LAPACK calls that XLA's CPU runtime may run
@@ -275,20 +235,16 @@ class _Model:
             hp = he = np.zeros((0, 12, 12))
         proj, full, nodes = [], [], []
         for s, k, (rows, w) in _chunks(pairs.pt, pairs.pt_w):
-            if exact:
-                bp, be = _pt_blocks(self.law, xj, rows, w)
-                full.append(np.asarray(be)[:k])
-            else:
-                bp = _pt_normal_blocks(self.law, xj, rows, w)
+            bp, be = _pt_blocks(self.law, xj, rows, w)
             proj.append(np.asarray(bp)[:k])
+            if exact:
+                full.append(np.asarray(be)[:k])
             nodes.append(pairs.pt[s:s + k])
         for s, k, (rows, w, eps) in _chunks(pairs.ee, pairs.ee_w, pairs.ee_eps):
-            if exact:
-                bp, be = _ee_blocks(self.law, xj, rows, w, eps)
-                full.append(np.asarray(be)[:k])
-            else:
-                bp = _ee_normal_blocks(self.law, xj, rows, w, eps)
+            bp, be = _ee_blocks(self.law, xj, rows, w, eps)
             proj.append(np.asarray(bp)[:k])
+            if exact:
+                full.append(np.asarray(be)[:k])
             nodes.append(pairs.ee[s:s + k])
 
         def assemble(tb, hb, pb):
