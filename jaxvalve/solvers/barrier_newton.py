@@ -219,7 +219,8 @@ class _Model:
         eigendecomposition, a third of the tangent's cost), left soft valves short of
         equilibrium: the Table 4 cell E1 = 0.18, E2 = 0.3 MPa (h = 1.5 mm, 80 mmHg from
         the 3 mmHg state) ended its 200 steps in a two-state cycle at a residual of
-        1.7e-3, where the full projection converges in 92 steps.
+        1.7e-3, where the full projection converges in 74 steps (`jaxvalve sweep
+        --table 4 --h 1.5`; docs/barrier-contact.md, "Soft valves").
         With ``exact``: the pair (projected, exact), the exact one -dF/dx of the total
         force (unsymmetric: the follower pressure) from the same element Hessians.
 
