@@ -123,11 +123,13 @@ def probe(problem, params, x, *, skin=equilibrium.DEFAULT_SKIN, step=1e-7,
 
 def stopped_cause(problem, params, result: str, x, *, skin, precision="float64"):
     """`probe`'s verdict (a line) on a solve of ``problem`` under ``params`` that stopped
-    at its step cap (``result`` 'max_steps_reached') in state x (N, 3) mm, evaluated in
-    float64; None for any other result, for non-finite x, and for a contact law without
-    a pointwise ``energy`` (the paper's law; the barrier, solved by its own Newton)."""
+    short of equilibrium at its step cap or stagnated (``result`` 'max_steps_reached' or
+    'stagnation') in state x (N, 3) mm, evaluated in float64; None for any other result,
+    for non-finite x, and for a contact law without a pointwise ``energy`` (the paper's
+    law; the barrier, solved by its own Newton)."""
     contact = params.contact
-    if result != "max_steps_reached" or not (contact is None or hasattr(contact, "energy")):
+    if (result not in ("max_steps_reached", "stagnation")
+            or not (contact is None or hasattr(contact, "energy"))):
         return None
     if not np.all(np.isfinite(np.asarray(x))):
         return None

@@ -95,7 +95,7 @@ def test_a_load_past_the_limit_ends_at_a_limit_point_and_the_next_is_skipped(val
     assert skipped.report.result == "limit_point"
 
 
-def test_a_given_first_attempt_is_used_and_a_stale_one_is_not(valve, scripted):
+def test_a_given_first_attempt_is_used_and_a_stale_one_is_not(valve, scripted, monkeypatch):
     """`simulate_batch` hands its batched attempts in as ``first``: a converged one is
     taken as it is (no solve); one that ran away is followed by the continuation, and the
     next load's batched attempt, which started from the runaway state, is discarded."""
@@ -106,9 +106,12 @@ def test_a_given_first_attempt_is_used_and_a_stale_one_is_not(valve, scripted):
     assert s.calls == [] and (he.report.steps, closed.report.steps) == (11, 13)
     np.testing.assert_array_equal(closed.x, x + 2.0)
 
-    # a first attempt that stagnated: the continuation retries at half the increment,
-    # then at 3 mmHg itself; the 80 mmHg attempt (solved from the stagnated state) is
-    # not taken, 80 mmHg is solved afresh from the new equilibrium
+    # a first attempt that stagnated, by a solver that takes a stagnation for a load step
+    # too long (`continuation.cut_on`: the barrier Newton; FIRE does not): the
+    # continuation retries at half the increment, then at 3 mmHg itself; the 80 mmHg
+    # attempt (solved from the stagnated state) is not taken, 80 mmHg is solved afresh
+    # from the new equilibrium
+    monkeypatch.setattr(closure, "cut_on", lambda solver: ("stagnation",))
     s = scripted(limit=100.0)
     stale = (_sol(x + 5.0, RESULTS.stagnation, 11), _sol(x + 6.0, RESULTS.successful, 13))
     he, closed = closure.close_valve(valve, SCENE, first=stale)

@@ -180,8 +180,8 @@ def test_a_ramp_that_stalls_is_reported_as_stagnation_never_as_a_limit_point():
 
 
 def test_a_solver_may_declare_its_step_cap_a_load_step_too_long():
-    """The barrier Newton declares `max_steps_reached` a step too long (cut_on); FIRE does
-    not, so its cap ends the ramp."""
+    """The barrier Newton declares `max_steps_reached` a step too long (cut_on); FIRE
+    declares nothing (neither its cap nor its stagnation), so its cap ends the ramp."""
     from jaxvalve.continuation import CUT_ON, cut_on
     from jaxvalve.solvers import BarrierNewton
 
@@ -191,7 +191,8 @@ def test_a_solver_may_declare_its_step_cap_a_load_step_too_long():
             code = RESULTS.successful if sol.converged else RESULTS.max_steps_reached
             return type(sol)(x=sol.x, result=int(code), stats=sol.stats)
 
-    assert "max_steps_reached" in cut_on(BarrierNewton()) and cut_on(FIRE()) == CUT_ON
+    assert "max_steps_reached" in cut_on(BarrierNewton()) and cut_on(FIRE()) == ()
+    assert "stagnation" in CUT_ON
     s = Capped(reach=25.0)
     out = ramp(s, np.array([3.0]), 80.0, 3.0, cut=cut_on(BarrierNewton()))
     assert out.converged and s.tried == [80.0, 41.5, 22.25, 41.5, 80.0, 60.75, 80.0]

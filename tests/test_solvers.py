@@ -250,3 +250,27 @@ def test_float32_solve_agrees_with_float64_and_reports_its_rounding_floor(disk):
     assert float(low.stats.residual) > 1e-9
     with pytest.raises(ConvergenceError, match="residual"):
         equilibrium.solve(prob, params, x32, FIRE(rtol=1e-9, max_steps=3000))
+
+
+def test_fire_stops_once_its_best_residual_stops_halving(disk):
+    """Patience: asked for a residual below float32's rounding floor, FIRE's best residual
+    stops halving at the floor, and the solve ends as `RESULTS.stagnation` exactly
+    ``patience`` steps later (the same trajectory under two patiences), not at its step
+    cap; patience 0 runs to the cap.  A solve that converges is not changed by it."""
+    prob, ref, x0 = disk
+    params = _params(ref)
+    x32 = x0.astype(jnp.float32)
+    runs = {k: equilibrium.solve(prob, params, x32, FIRE(rtol=1e-9, max_steps=5000,
+                                                         patience=k), throw=False)
+            for k in (0, 200, 500)}
+    assert int(runs[0].result) == RESULTS.max_steps_reached and int(runs[0].stats.steps) == 5000
+    for k in (200, 500):
+        assert int(runs[k].result) == RESULTS.stagnation, runs[k].describe()
+        assert "patience" in runs[k].describe()
+    last_halving = int(runs[200].stats.steps) - 201
+    assert 0 < last_halving == int(runs[500].stats.steps) - 501
+    assert float(runs[200].stats.residual) > 1e-7          # at the float32 floor
+    a = equilibrium.solve(prob, params, x0, FIRE(rtol=1e-8))
+    b = equilibrium.solve(prob, params, x0, FIRE(rtol=1e-8, patience=0))
+    assert int(a.stats.steps) == int(b.stats.steps)
+    np.testing.assert_array_equal(np.asarray(a.x), np.asarray(b.x))
