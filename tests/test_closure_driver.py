@@ -165,8 +165,10 @@ class TwoLaws:
     (``smooth_fails``, e.g. a step cap) above ``smooth_limit`` mmHg, on the barrier law
     it converges in 5 steps everywhere; logs (law, pressure) of every call."""
 
-    def __init__(self, smooth_limit=20.0, smooth_fails=RESULTS.max_steps_reached):
+    def __init__(self, smooth_limit=20.0, smooth_fails=RESULTS.max_steps_reached,
+                 barrier_fails=None):
         self.smooth_limit, self.smooth_fails, self.calls = smooth_limit, smooth_fails, []
+        self.barrier_fails = barrier_fails
 
     def __call__(self, valve, material, p, *, x0, contact=None, **kw):
         law = "barrier" if getattr(contact, "barrier", False) else "smooth"
@@ -174,7 +176,7 @@ class TwoLaws:
         x = np.asarray(x0, float).copy()
         x[:, 0] = np.asarray(valve.x_start, float)[:, 0] + p
         if law == "barrier":
-            return _sol(x, RESULTS.successful, 5)
+            return _sol(x, self.barrier_fails or RESULTS.successful, 5)
         code = RESULTS.successful if p <= self.smooth_limit else self.smooth_fails
         return _sol(x, code, 9)
 
@@ -206,6 +208,21 @@ def test_a_failure_at_the_first_load_skips_the_smooth_laws_later_loads(valve, tw
     assert s.calls == [("smooth", 3.0), ("barrier", 3.0), ("barrier", 80.0)]
     assert he.converged and closed.converged
     assert he.report.fallback.startswith("fire+smooth failed at 3 mmHg")
+
+
+def test_the_fallback_skips_the_loads_after_one_it_could_not_close(valve, two_laws):
+    """Both laws fail at 3 mmHg: the barrier path does not close 80 mmHg from the failed
+    state (no equilibrium to continue from); the 80 mmHg report says it was skipped, is
+    not converged and shows the state before it."""
+    s = two_laws(smooth_limit=1.0, barrier_fails=RESULTS.stretch_limit)
+    he, closed = closure.close_valve(valve, FALLBACK)
+    assert s.calls == [("smooth", 3.0), ("barrier", 3.0)]
+    assert not he.converged and not closed.converged
+    assert closed.report.pressure == 80.0 and closed.report.steps == 0
+    assert closed.report.state_pressure == he.report.state_pressure
+    assert closed.report.result == he.report.result == "stretch_limit"
+    np.testing.assert_array_equal(closed.x, he.x)
+    assert closed.report.fallback.startswith("fire+smooth failed at 3 mmHg")
 
 
 def test_no_fallback_at_a_limit_point_or_when_switched_off(valve, two_laws, scripted):
