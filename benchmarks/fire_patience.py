@@ -28,20 +28,12 @@ from jaxvalve import Scene, simulate  # noqa: E402
 from jaxvalve.simulation import build_scene_valve  # noqa: E402
 from jaxvalve.solvers import FIRE  # noqa: E402
 from jaxvalve.xla_setup import platform_summary  # noqa: E402
+from closure_speed import Tee  # noqa: E402  (this folder is on the path of a script)
 
 SCENES = (("benchmark valve (stvk)", dict()),) + tuple(
     (f"Table 4 E1 = {e1:g}, E2 = {e2:g} MPa, no fallback",
      dict(model="mass-spring", E1=e1, E2=e2, E3=1.2, fallback=False))
     for e1, e2 in ((0.106, 0.3), (0.18, 0.7), (0.05, 0.569)))
-
-
-class Tee:
-    def __init__(self):
-        self.lines = []
-
-    def __call__(self, s=""):
-        print(s, flush=True)
-        self.lines.append(s)
 
 
 def run(scene, valve, patience):
@@ -88,8 +80,7 @@ def main(argv=None):
     say()
     for s in summary:
         say(s)
-    if args.out:
-        Path(args.out).write_text("\n".join(say.lines) + "\n")
+    say.write(args.out)
 
 
 if __name__ == "__main__":
