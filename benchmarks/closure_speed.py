@@ -52,6 +52,13 @@ class Tee:
         if path:
             Path(path).write_text("\n".join(self.lines) + "\n")
 
+    def finish(self, summary, path):
+        """Print the summary lines after a blank line, then write everything to path."""
+        self()
+        for s in summary:
+            self(s)
+        self.write(path)
+
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -92,10 +99,7 @@ def main(argv=None):
                                + " and ".join(n for n in (PATHS[0][0], name)
                                               if solve_s[n] != solve_s[n])
                                + " did not converge")
-    say()
-    for s in summary:
-        say(s)
-    say.write(args.out)
+    say.finish(summary, args.out)
 
 
 if __name__ == "__main__":

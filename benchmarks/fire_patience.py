@@ -77,10 +77,7 @@ def main(argv=None):
         summary.append(f"{name}: speed-up {t0 / t1:.2f}x (patience 0: {t0:.2f} s, "
                        f"patience {default}: {t1:.2f} s after compilation); the states "
                        f"at 80 mmHg differ by at most {dx:.2e} mm")
-    say()
-    for s in summary:
-        say(s)
-    say.write(args.out)
+    say.finish(summary, args.out)
 
 
 if __name__ == "__main__":
