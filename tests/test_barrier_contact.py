@@ -71,7 +71,9 @@ def test_edge_edge_distance_gradient_hessian_match_ipctk():
 
 def test_barrier_and_mollifier_match_ipctk():
     """B(z) d_hat^4 is the toolkit's barrier of the squared distance; the law's pair
-    energy is its 'physical' barrier (divided by d_hat^3); the mollifier is the toolkit's."""
+    energy is its 'physical' barrier (divided by d_hat^3).  The mollifier is the toolkit's
+    where both are 1 (edges farther from parallel than the threshold), and like it zero
+    for parallel edges and increasing in between; unlike it, C2 at the threshold."""
     dhat = 0.2
     for d in (0.01, 0.05, 0.13, 0.199, 0.25):
         z = d * d / dhat ** 2
@@ -79,11 +81,25 @@ def test_barrier_and_mollifier_match_ipctk():
         np.testing.assert_allclose(float(barrier(z)) * dhat ** 4, ref, rtol=1e-12, atol=1e-300)
     V = RNG.normal(size=(200, 4, 3))
     V[:50, 3] = V[:50, 2] + (V[:50, 1] - V[:50, 0]) * 0.7 + 1e-3 * RNG.normal(size=(50, 3))
+    inside = 0
     for v in V:
         eps = D.mollifier_threshold(np.linalg.norm(v[1] - v[0]), np.linalg.norm(v[3] - v[2]))
         x = float(D.edge_edge_cross2(*map(jnp.asarray, v)))
-        np.testing.assert_allclose(float(D.mollifier(x, eps)),
-                                   ipctk.edge_edge_mollifier(*v, eps), rtol=1e-10)
+        ours, theirs = float(D.mollifier(x, eps)), ipctk.edge_edge_mollifier(*v, eps)
+        if x >= eps:
+            assert ours == theirs == 1.0
+        else:
+            inside += 1
+            assert 0.0 <= theirs < 1.0 and 0.0 <= ours < 1.0
+    assert inside >= 40
+    m = lambda r: D.mollifier(r, 1.0)
+    d1, d2 = jax.grad(m), jax.grad(jax.grad(m))
+    assert float(m(0.0)) == 0.0 and float(d1(0.0)) > 0
+    r = np.linspace(0.0, 0.999, 50)
+    assert np.all(np.diff(np.asarray(jax.vmap(m)(r))) > 0)
+    for side in (1.0 - 1e-6, 1.0 + 1e-6):      # C2 at the threshold: m' and m'' tend to 0
+        assert abs(float(m(side)) - 1.0) < 1e-12
+        assert abs(float(d1(side))) < 1e-10 and abs(float(d2(side))) < 1e-5
 
 
 def test_barrier_is_c2_at_the_activation_distance():

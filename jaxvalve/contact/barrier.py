@@ -19,8 +19,9 @@ the distance to a convex set, C1 in the positions, so the energy is C1 everywher
 within each distance type; it counts a node near an edge of a sheet once for each triangle
 at that edge (the toolkit's later de-duplication drops such repeats, but switches terms on
 and off where the closest feature changes, which makes the energy jump).  The edge-edge
-terms carry IPC's mollifier, which removes them smoothly as the edges turn parallel (where
-the line-line distance is undefined).  They are what stops two sheets from passing through
+terms carry a mollifier (`ipc_distance.mollifier`: IPC's, made C2 and over a wider
+angle), which removes them smoothly as the edges turn parallel (where the line-line
+distance is undefined).  They are what stops two sheets from passing through
 each other edge first, between nodes.
 
 Weights.  A point-triangle collision of node p weighs a_p / 2 (a_p its lumped reference
