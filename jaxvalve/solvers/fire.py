@@ -24,11 +24,11 @@ class FIRE:
     stop, as `RESULTS.stretch_limit`.
 
     patience: the solve stops as `RESULTS.stagnation` once its best relative residual has
-    not halved for this many steps (0: never).  On the benchmark valve (four models,
-    h = 1.5 and 0.88 mm, 3 and 80 mmHg) the longest stretch without a halving was 459
-    steps, on the soft leaflets of the paper's Table 4 at 3 mmHg 690; at 80 mmHg those
-    soft valves reach their best residual within 250-3100 steps and then wander for the
-    rest of the step cap, which cost 50 000 steps before the fallback could start
+    not halved for this many steps (0: never).  On the benchmark valve (four models at
+    h = 1.5 mm, three at 0.88 mm, 3 and 80 mmHg) the longest stretch without a halving
+    was 459 steps, on the soft leaflets of the paper's Table 4 at 3 mmHg 690; at 80 mmHg
+    those soft valves last halve their best residual by step 242-3056 and then wander for
+    the rest of the step cap, which cost 50 000 steps before the fallback could start
     (docs/mechanics-and-solvers.md, "FIRE's patience")."""
 
     rtol: float = 1e-6
@@ -124,11 +124,13 @@ class FIRE:
         npos = jnp.where(refuse, 0, npos)
         n = s["n"] + 1
         # patience: the step at which the best residual last halved (from step 1: at the
-        # null step 0 the residual's scale may not be set yet, `iterate`)
-        r = relative_residual(system, y, args, F)
-        halved = ~first & (r < 0.5 * s["best"])
-        best = jnp.where(halved, r, s["best"])
-        mark = jnp.where(halved, n, s["mark"])
+        # null step 0 the residual's scale may not be set yet, `iterate`); with patience
+        # 0 nothing is traced
+        best, mark = s["best"], s["mark"]
+        if self.patience > 0:
+            r = relative_residual(system, y, args, F)
+            halved = ~first & (r < 0.5 * best)
+            best, mark = jnp.where(halved, r, best), jnp.where(halved, n, mark)
         return y, dict(F=F, v=v, m=m, dt=dt, alpha=alpha, npos=npos, n=n, evals=s["evals"] + 1,
                        refused=refuse, admissible=admissible | refuse, best=best, mark=mark)
 
