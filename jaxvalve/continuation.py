@@ -24,11 +24,19 @@ through 10, 20 and 40 mmHg.)  The result is one of
   and every one at or below it converged, within the bracket ``(pressure, p_escape)``:
   no equilibrium at the target connected to the start, the highest one found being the
   state ``x`` at ``pressure`` (a start that is not itself an equilibrium is never
-  reported as a limit point: with no converged solve the ramp ends as ``escaped``);
+  reported as a limit point: with no converged solve the ramp ends as ``escaped``).
+  Also where solves above a runaway's bracket stall (a failure in ``cut``) within
+  ``rtol`` of the highest equilibrium: just past a fold the state drifts slowly away
+  through the ghost of the lost equilibrium, and a Newton solve there ends at its step
+  cap before it has moved far enough to count as a runaway (the soft neo-Hookean valve of
+  the paper's Table 5, E = 0.1 MPa at h = 1.5 mm: equilibria up to 20.29 mmHg, step caps
+  at 20.45-21.05, runaways from 22.25); ``p_stall`` is then the lowest stalled pressure;
 * any other `RESULTS` name: a solve failed for another reason (step cap, crossing
   leaflets ...), or stagnated within ``rtol`` of the last equilibrium, or failed after the
   ramp's step budget was spent (`Ramp.max_steps`), which ends the ramp and is reported as
-  it is, never as a limit point.
+  it is, never as a limit point.  Once a solve has run away the budget no longer applies:
+  the ramp then only narrows a bracket under the runaway, each solve halving it or
+  raising its lower end, for at most ``max_solves`` solves.
 """
 from __future__ import annotations
 
@@ -49,8 +57,8 @@ class Ramp:
     """Settings of `ramp`: rtol, the bracket width (relative to its upper pressure) at which
     a limit point is declared; max_solves, the most equilibrium solves in one ramp;
     max_steps, the most solver steps over all of them (None: no bound but max_solves),
-    checked after each failed solve, so that a ramp that cannot converge ends in bounded
-    time."""
+    checked after each failed solve until a solve has run away, so that a ramp that cannot
+    converge ends in bounded time."""
 
     rtol: float = 0.01
     max_solves: int = 30
@@ -80,7 +88,9 @@ class RampResult:
     which a solve ran away (None when none did).  x (N, 3): the state at ``pressure``.
     solution: the solve that gave x (None when it is the start state), failure: the solve
     that ended the ramp (None when converged).  history: (pressure, result name, steps,
-    relative residual) per solve.  steps: solver steps over all solves."""
+    relative residual) per solve.  steps: solver steps over all solves.  p_stall: for a
+    limit point whose nearest failures stalled rather than ran away, the lowest stalled
+    pressure above ``pressure`` (else None)."""
 
     status: str
     pressure: float
@@ -90,6 +100,7 @@ class RampResult:
     failure: Any
     history: tuple
     steps: int
+    p_stall: float | None = None
 
     @property
     def converged(self) -> bool:
@@ -113,8 +124,10 @@ class RampResult:
         if self.status == "converged":
             return f"converged at {self.pressure:g}"
         if self.status == "limit_point":
-            return (f"limit_point: no equilibrium above {self.pressure:.4g} (solves at "
-                    f"{self.p_escape:.4g} and above ran away); the state shown is the "
+            stalled = ("" if self.p_stall is None
+                       else f"solves from {self.p_stall:.4g} stalled, ")
+            return (f"limit_point: no equilibrium above {self.pressure:.4g} ({stalled}solves "
+                    f"at {self.p_escape:.4g} and above ran away); the state shown is the "
                     f"equilibrium at {self.pressure:.4g}")
         f = self.failure
         tail = f": {f.describe()}" if f is not None else ""
@@ -174,9 +187,13 @@ def ramp(solve: Callable, x0, p_target: float, p_start: float = 0.0,
                                   tuple(history), steps)
         elif status in cut and p - p_ok > settings.rtol * p:
             p_stall = p
+        elif status in cut and p_bad is not None and sol_ok is not None and p < p_bad:
+            # stalled within rtol of an equilibrium, under a runaway: past the fold
+            return RampResult("limit_point", p_ok, p_bad, x_ok, sol_ok, sol,
+                              tuple(history), steps, p_stall=p)
         else:
             return RampResult(status, p_ok, p_bad, x_ok, sol_ok, sol, tuple(history), steps)
-        if (not sol.converged and settings.max_steps is not None
+        if (not sol.converged and settings.max_steps is not None and p_bad is None
                 and steps >= settings.max_steps):       # the budget is spent
             return RampResult(status, p_ok, p_bad, x_ok, sol_ok, sol, tuple(history), steps)
         p = _next_pressure(p_ok, p_bad, p_stall, p_target, sol.converged)

@@ -217,3 +217,53 @@ def test_a_ramp_ends_when_its_step_budget_is_spent():
     assert Ramp.for_solver(object()).max_steps is None
     with pytest.raises(ParameterError, match="max_steps"):
         Ramp(max_steps=0)
+
+
+class _Fold:
+    """A stand-in solve with a fold at ``fold``: it converges at or below it, stalls at its
+    step cap just above it (the slow drift through the ghost of the lost equilibrium, a
+    failure the barrier Newton declares a load step too long), and runs away from
+    ``runaway`` up.  The state is its pressure."""
+
+    def __init__(self, fold=20.3, runaway=22.0, stall_steps=300):
+        self.fold, self.runaway, self.stall_steps, self.tried = fold, runaway, stall_steps, []
+
+    def __call__(self, p, x):
+        from jaxvalve.solvers import Solution, Stats
+        self.tried.append(p)
+        if p <= self.fold:
+            code, n, res, y = RESULTS.successful, 10, 1e-9, p
+        elif p < self.runaway:
+            code, n, res, y = RESULTS.max_steps_reached, self.stall_steps, 3e-3, float(x[0])
+        else:
+            code, n, res, y = RESULTS.escaped, 50, 5.0, 1e3
+        stats = Stats(steps=n, force_evals=n, hvps=0, residual=res)
+        return Solution(x=np.array([y]), result=int(code), stats=stats)
+
+
+def test_solves_that_stall_just_past_a_fold_under_a_runaway_end_at_a_limit_point():
+    """Past a fold the state drifts slowly, and a Newton solve there ends at its step cap
+    before it counts as a runaway: stalls within rtol of the highest equilibrium, under a
+    pressure that ran away, are a limit point, bracketed like one.  Once a solve has run
+    away the ramp's step budget no longer ends it (it only narrows a bracket then).
+    Without a runaway the same stalls are reported as they are."""
+    from jaxvalve.continuation import cut_on
+    from jaxvalve.solvers import BarrierNewton
+    cut = cut_on(BarrierNewton())
+    s = _Fold()
+    out = ramp(s, np.array([3.0]), 80.0, 3.0, Ramp(max_steps=1000), cut=cut)
+    assert out.status == "limit_point" and out.limit_point and not out.converged
+    assert out.pressure <= s.fold < out.p_stall < s.runaway <= out.p_escape
+    assert out.p_stall - out.pressure <= 0.01 * out.p_stall
+    assert out.steps > 1000                  # past the budget, which no longer applies
+    assert float(out.x[0]) == out.pressure and out.final == (out.solution, out.pressure)
+    assert f"solves from {out.p_stall:.4g} stalled" in out.describe()
+    # the same stalls with no runaway above them: the step cap, never a limit point
+    s = _Fold(runaway=np.inf)
+    out = ramp(s, np.array([3.0]), 80.0, 3.0, Ramp(max_steps=100_000), cut=cut)
+    assert out.status == "max_steps_reached" and not out.limit_point
+    assert out.p_escape is None and out.pressure <= s.fold
+    # and the budget still ends a ramp that has seen no runaway
+    s = _Fold(runaway=np.inf)
+    out = ramp(s, np.array([3.0]), 80.0, 3.0, Ramp(max_steps=1000), cut=cut)
+    assert out.status == "max_steps_reached" and 1000 <= out.steps < 1000 + 300
