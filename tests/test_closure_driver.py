@@ -225,6 +225,36 @@ def test_the_fallback_skips_the_loads_after_one_it_could_not_close(valve, two_la
     assert closed.report.fallback.startswith("fire+smooth failed at 3 mmHg")
 
 
+class CrossedOnFail(TwoLaws):
+    """`TwoLaws` whose failed smooth closures end in a state that is no separated start
+    (not finite here; crossed leaflets in the Gent valve of Table 5 at 0.1 MPa)."""
+
+    def __call__(self, valve, material, p, *, x0, contact=None, **kw):
+        sol = super().__call__(valve, material, p, x0=x0, contact=contact, **kw)
+        if int(sol.result) != RESULTS.successful:
+            x = np.asarray(sol.x, float).copy()
+            x[0, 0] = np.nan
+            sol = _sol(x, sol.result, 9)
+        return sol
+
+
+def test_the_fallback_swings_shut_under_a_lighter_load_where_the_smooth_state_is_unusable(
+        valve, monkeypatch):
+    """The smooth law fails at 3 mmHg in a state the barrier path cannot start from: the
+    valve is swung shut by FIRE under he_pressure / 3 (then / 9), and the barrier
+    closures start from the first separated one; where none is, from the placement."""
+    make = _stand_in(monkeypatch, CrossedOnFail)
+    s = make(smooth_limit=1.0)
+    he, closed = closure.close_valve(valve, FALLBACK)
+    assert s.calls == [("smooth", 3.0), ("smooth", 1.0), ("barrier", 3.0), ("barrier", 80.0)]
+    assert he.converged and closed.converged
+    s = make(smooth_limit=0.2)
+    he, closed = closure.close_valve(valve, FALLBACK)
+    assert s.calls == [("smooth", 3.0), ("smooth", 1.0), ("smooth", pytest.approx(1 / 3)),
+                       ("barrier", 3.0), ("barrier", 80.0)]
+    assert closure.SWING_FRACTIONS[0] == 1.0     # the barrier path's own swing: he first
+
+
 def test_no_fallback_at_a_limit_point_or_when_switched_off(valve, two_laws, scripted):
     """A limit point is the membrane's: the barrier law is not tried.  Nor is it with
     ``fallback=False``, or in float32 (the barrier path is float64 only)."""
