@@ -212,7 +212,9 @@ def swing_shut(valve, scene: Scene, x, *, material=None, ref=None, say=_quiet,
     to swing shut cleanly at ``he_pressure`` (Table 5's Gent valve, E = 0.1 MPa: FIRE
     stagnates at 3 mmHg, residual 0.77, with leaflets crossing, and converges at 1 mmHg
     to a separated state).  The final states are equilibria of the barrier law either
-    way.  ref: a mapped reference (`valve.close`)."""
+    way.  ref: a mapped reference (`valve.close`).  Returns (state, the pressure at
+    which it is an equilibrium, mmHg; 0 for the placement), so that the first barrier
+    closure continues from that pressure."""
     material = scene.material() if material is None else material
     start = scene.replace(contact="smooth", solver="fire", rtol=max(scene.rtol, 1e-4))
     for f in fractions:
@@ -229,9 +231,9 @@ def swing_shut(valve, scene: Scene, x, *, material=None, ref=None, say=_quiet,
         say(f"  {sol.describe()}; {time.perf_counter() - t0:.2f} s"
             + ("" if ok else "; not a separated start"))
         if ok:
-            return y.astype(np.asarray(x).dtype)
+            return y.astype(np.asarray(x).dtype), float(p)
     say("  the barrier closures start from the placement")
-    return x
+    return x, 0.0
 
 
 def _skipped(prev: LoadSolve, p, why, say) -> LoadSolve:
@@ -242,7 +244,7 @@ def _skipped(prev: LoadSolve, p, why, say) -> LoadSolve:
 
 
 def _in_turn(valve, scene, material, x, pressures, nbrs, first, done, swung, say,
-             stop=False):
+             stop=False, p0=0.0):
     """The loads of `close_valve` on the scene's own path (no fallback).  stop: end
     after the first load that failed other than at a limit point (the fallback closes
     every load again)."""
@@ -250,9 +252,9 @@ def _in_turn(valve, scene, material, x, pressures, nbrs, first, done, swung, say
     if scene.contact == "barrier" and not swung and not done:
         with compile_timer() as ct:
             t0 = time.perf_counter()
-            x = swing_shut(valve, scene, x, material=material, say=say)
+            x, p0 = swing_shut(valve, scene, x, material=material, say=say)
             start_s = max(time.perf_counter() - t0 - ct.seconds, 0.0)
-    out, p_prev = list(done), 0.0
+    out, p_prev = list(done), p0
     if done:
         x, p_prev = np.asarray(done[-1].solution.x), float(done[-1].report.state_pressure)
     for i, p in enumerate(pressures):
@@ -268,7 +270,10 @@ def _in_turn(valve, scene, material, x, pressures, nbrs, first, done, swung, say
         f = first[i] if i < len(first) else None
         if prev is not None and len(prev.ramp.history) > 1:
             f = None          # the batched attempt started from another state
-        ls = close_load(valve, scene, p, x, p_from=p_prev, material=material, nbrs=nbrs,
+        # a swing-shut at the load itself is the smooth law's equilibrium, no start of a
+        # ramp from that load: the ramp then starts from 0, as from the placement
+        ls = close_load(valve, scene, p, x, p_from=p_prev if p_prev < p else 0.0,
+                        material=material, nbrs=nbrs,
                         first=f, say=say)
         if i == 0 and start_s:
             ls = dataclasses.replace(ls, start_s=start_s)
@@ -328,7 +333,7 @@ def fall_back(valve, scene: Scene, loads, failed: LoadSolve, *, material=None, x
           f"{failed.report.describe()}"
     say(f"fallback: {why}; closing again on the barrier law (newton solver)")
     barrier = scene.replace(contact="barrier", solver="newton")
-    start, swing_s = np.asarray(loads[0].x, np.float64), 0.0
+    start, swing_s, p_swung = np.asarray(loads[0].x, np.float64), 0.0, 0.0
     if separated(valve, start):
         x = start
         say(f"  the barrier closures start from the {path_name(scene)} state at "
@@ -340,14 +345,14 @@ def fall_back(valve, scene: Scene, loads, failed: LoadSolve, *, material=None, x
             "from a swing-shut under a lighter load")
         with compile_timer() as ct:
             t0 = time.perf_counter()
-            x = swing_shut(valve, barrier, x, material=material, say=say,
-                           fractions=SWING_FRACTIONS[1:])
+            x, p_swung = swing_shut(valve, barrier, x, material=material, say=say,
+                                    fractions=SWING_FRACTIONS[1:])
             swing_s = max(time.perf_counter() - t0 - ct.seconds, 0.0)
     # a load after one that failed starts from no equilibrium: it is skipped (a Gent
     # valve of Table 5 at 0.1 MPa spent 142 s on an 80 mmHg closure from the state of a
     # failed 3 mmHg one, to fail again)
     out = _in_turn(valve, barrier, material, x, pressures, None, (), (), True, say,
-                   stop=True)
+                   stop=True, p0=p_swung)
     while len(out) < len(pressures):
         out += (_skipped(out[-1], pressures[len(out)], f"the closure at "
                          f"{out[-1].report.pressure:g} mmHg did not converge", say),)

@@ -255,6 +255,26 @@ def test_the_fallback_swings_shut_under_a_lighter_load_where_the_smooth_state_is
     assert closure.SWING_FRACTIONS[0] == 1.0     # the barrier path's own swing: he first
 
 
+class BarrierCapped(CrossedOnFail):
+    """`CrossedOnFail` whose barrier solves stop at their step cap above 2.5 mmHg."""
+
+    def __call__(self, valve, material, p, *, x0, contact=None, **kw):
+        sol = super().__call__(valve, material, p, x0=x0, contact=contact, **kw)
+        if getattr(contact, "barrier", False) and p > 2.5:
+            sol = _sol(np.asarray(sol.x), RESULTS.max_steps_reached, 200)
+        return sol
+
+
+def test_the_first_barrier_load_continues_from_the_lighter_swing_pressure(valve, monkeypatch):
+    """After a swing-shut at 1 mmHg the 3 mmHg barrier closure's continuation cuts its
+    step between 1 and 3 mmHg (2 mmHg first), never below the swing's pressure."""
+    s = _stand_in(monkeypatch, BarrierCapped)(smooth_limit=1.0)
+    he, closed = closure.close_valve(valve, FALLBACK)
+    barrier = [p for law, p in s.calls if law == "barrier"]
+    assert barrier[:3] == [3.0, 2.0, 3.0] and min(barrier) >= 1.0
+    assert not he.converged and he.report.result == "max_steps_reached"
+
+
 def test_no_fallback_at_a_limit_point_or_when_switched_off(valve, two_laws, scripted):
     """A limit point is the membrane's: the barrier law is not tried.  Nor is it with
     ``fallback=False``, or in float32 (the barrier path is float64 only)."""
