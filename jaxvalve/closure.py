@@ -212,9 +212,9 @@ def swing_shut(valve, scene: Scene, x, *, material=None, ref=None, say=_quiet,
     to swing shut cleanly at ``he_pressure`` (Table 5's Gent valve, E = 0.1 MPa: FIRE
     stagnates at 3 mmHg, residual 0.77, with leaflets crossing, and converges at 1 mmHg
     to a separated state).  The final states are equilibria of the barrier law either
-    way.  ref: a mapped reference (`valve.close`).  Returns (state, the pressure at
-    which it is an equilibrium, mmHg; 0 for the placement), so that the first barrier
-    closure continues from that pressure."""
+    way.  ref: a mapped reference (`valve.close`).  Returns (state, the pressure of
+    its smooth-law equilibrium, mmHg; 0 for the placement), from which the first barrier
+    closure continues where it lies below that closure's load."""
     material = scene.material() if material is None else material
     start = scene.replace(contact="smooth", solver="fire", rtol=max(scene.rtol, 1e-4))
     for f in fractions:
@@ -236,6 +236,14 @@ def swing_shut(valve, scene: Scene, x, *, material=None, ref=None, say=_quiet,
     return x, 0.0
 
 
+def _timed_swing(valve, scene, x, material, say, fractions=SWING_FRACTIONS):
+    """`swing_shut`, and the seconds it took after compilation: (state, pressure, s)."""
+    with compile_timer() as ct:
+        t0 = time.perf_counter()
+        x, p = swing_shut(valve, scene, x, material=material, say=say, fractions=fractions)
+        return x, p, max(time.perf_counter() - t0 - ct.seconds, 0.0)
+
+
 def _skipped(prev: LoadSolve, p, why, say) -> LoadSolve:
     say(f"closing at {p:g} mmHg: skipped, {why}")
     rep = dataclasses.replace(prev.report, pressure=float(p), steps=0, wall_s=0.0,
@@ -250,10 +258,7 @@ def _in_turn(valve, scene, material, x, pressures, nbrs, first, done, swung, say
     every load again)."""
     start_s = 0.0
     if scene.contact == "barrier" and not swung and not done:
-        with compile_timer() as ct:
-            t0 = time.perf_counter()
-            x, p0 = swing_shut(valve, scene, x, material=material, say=say)
-            start_s = max(time.perf_counter() - t0 - ct.seconds, 0.0)
+        x, p0, start_s = _timed_swing(valve, scene, x, material, say)
     out, p_prev = list(done), p0
     if done:
         x, p_prev = np.asarray(done[-1].solution.x), float(done[-1].report.state_pressure)
@@ -270,8 +275,9 @@ def _in_turn(valve, scene, material, x, pressures, nbrs, first, done, swung, say
         f = first[i] if i < len(first) else None
         if prev is not None and len(prev.ramp.history) > 1:
             f = None          # the batched attempt started from another state
-        # a swing-shut at the load itself is the smooth law's equilibrium, no start of a
-        # ramp from that load: the ramp then starts from 0, as from the placement
+        # the ramp continues from the start's pressure where it lies below the load; a
+        # start at or above it (the barrier path's own swing-shut at the load itself, a
+        # smooth-law state; equal loads) is ramped as from the placement, from 0
         ls = close_load(valve, scene, p, x, p_from=p_prev if p_prev < p else 0.0,
                         material=material, nbrs=nbrs,
                         first=f, say=say)
@@ -343,11 +349,8 @@ def fall_back(valve, scene: Scene, loads, failed: LoadSolve, *, material=None, x
         say(f"  the {path_name(scene)} state at {loads[0].report.pressure:g} mmHg is no "
             "separated start (crossing, touching or folded): the barrier closures start "
             "from a swing-shut under a lighter load")
-        with compile_timer() as ct:
-            t0 = time.perf_counter()
-            x, p_swung = swing_shut(valve, barrier, x, material=material, say=say,
-                                    fractions=SWING_FRACTIONS[1:])
-            swing_s = max(time.perf_counter() - t0 - ct.seconds, 0.0)
+        x, p_swung, swing_s = _timed_swing(valve, barrier, x, material, say,
+                                           SWING_FRACTIONS[1:])
     # a load after one that failed starts from no equilibrium: it is skipped (a Gent
     # valve of Table 5 at 0.1 MPa spent 142 s on an 80 mmHg closure from the state of a
     # failed 3 mmHg one, to fail again)

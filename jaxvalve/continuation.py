@@ -29,8 +29,8 @@ through 10, 20 and 40 mmHg.)  The result is one of
   ``rtol`` of the highest equilibrium: just past a fold the state drifts slowly away
   through the ghost of the lost equilibrium, and a Newton solve there ends at its step
   cap before it has moved far enough to count as a runaway (the soft neo-Hookean valve of
-  the paper's Table 5, E = 0.1 MPa at h = 1.5 mm: equilibria up to 20.29 mmHg, step caps
-  at 20.45-21.05, runaways from 22.25); ``p_stall`` is then the lowest stalled pressure;
+  the paper's Table 5, E = 0.1 MPa at h = 1.5 mm: equilibria up to 20.1 mmHg, step caps
+  at 20.3-21.0, runaways from 22.2); ``p_stall`` is then the lowest stalled pressure;
 * any other `RESULTS` name: a solve failed for another reason (step cap, crossing
   leaflets ...), or stagnated within ``rtol`` of the last equilibrium, or failed after the
   ramp's step budget was spent (`Ramp.max_steps`), which ends the ramp and is reported as

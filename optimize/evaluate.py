@@ -231,8 +231,8 @@ class Evaluator:
                 # from the placement, swung shut first, as `simulate` does: from the open
                 # valve the 80 mmHg closure at (12.5, 7.5, 15.5) missed rtol 1e-9 within
                 # its step budget; swung shut, 11 and 46 Newton steps
-                x0 = swing_shut(self.valve, self.scene, x0, ref=self._ref_jit(th),
-                                material=self.material if material is None else material)
+                x0, _ = swing_shut(self.valve, self.scene, x0, ref=self._ref_jit(th),
+                                   material=self.material if material is None else material)
             # the one closure driver, with the mapped reference: the state check
             # (crossed leaflets, folds), continuation where a solve runs away, the stall
             # probe for a solve stopped at its step cap

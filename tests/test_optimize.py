@@ -284,3 +284,13 @@ def test_a_closure_stopped_at_its_step_cap_names_the_stall_probes_verdict(evalua
     assert not ev.converged and "max_steps_reached" in ev.reason
     assert "the solve is slow, not stuck on a jump" in ev.reason
     assert ev.solves[-1]["cause"] in ev.reason
+
+
+def test_the_evaluator_closes_on_the_barrier_path_from_a_swing_shut():
+    """On the barrier law the evaluator swings the valve shut from the placement
+    (`closure.swing_shut`, which returns the state and its pressure) and closes it by
+    projected Newton to the scene's rtol: a finite objective from a converged closure."""
+    sc = Scene(h=2.5, pressure=3.0, contact="barrier", solver="newton", rtol=1e-8)
+    e = Evaluator(sc, Objective(targets=(Target("h", value=8.0),))).forward(BASE)
+    assert e.converged and all(s["converged"] for s in e.solves)
+    assert np.isfinite(e.value)
