@@ -10,6 +10,13 @@ stiffness of 1e3 N/mm changes a force by 1e-4 N; a change far above both that an
 residual itself is a jump.  On the soft valves of the paper's Table 4 the one-sided
 contact force jumps by 0.27-0.44 N where a free edge has folded round another leaflet's
 (`benchmarks/stall_probe.py`, docs/known-limits.md).
+
+The barrier law is solved by projected Newton, whose line search keeps every edge's fold
+below `checks.FOLD_DEG`.  Its solves stop short at that bound when a crease wants to fold
+further (`fold_bound_cause`): the hinge energy D w (1 - cos theta) resists a fold with a
+moment D w sin(theta), which falls past 90 degrees, so that every descent step from such a
+state folds the crease on (soft StVK, E = 0.05 MPa, h = 2 mm: the barrier closure at
+3 mmHg from the placement stagnated with one edge at 150 degrees; docs/known-limits.md).
 """
 from __future__ import annotations
 
@@ -20,13 +27,18 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import assembly, equilibrium
+from .checks import FOLD_DEG, interior_edges
 
-__all__ = ["StallReport", "probe", "stopped_cause", "TERMS"]
+__all__ = ["StallReport", "probe", "stopped_cause", "fold_bound_cause", "TERMS"]
 
 #: The force terms probed: strain, bending, contact (`assembly.force_parts`).
 TERMS = ("elastic", "bending", "contact")
 #: Largest stiffness (N/mm) a continuous force is granted; beyond it a change is a jump.
 STIFFNESS_CAP = 1e3
+#: an edge folded to within this (degrees) of `checks.FOLD_DEG` is at the barrier Newton's
+#: fold bound (its line search halves steps against the bound 30 times, so the solve
+#: stops within ~1e-9 degrees of it)
+AT_FOLD_BOUND_DEG = 0.01
 
 
 @dataclasses.dataclass(frozen=True)
@@ -121,17 +133,46 @@ def probe(problem, params, x, *, skin=equilibrium.DEFAULT_SKIN, step=1e-7,
                        precision=np.dtype(precision).name)
 
 
+def fold_bound_cause(problem, x):
+    """A line naming the edge of state x (N, 3) mm folded to `checks.FOLD_DEG` (within
+    `AT_FOLD_BOUND_DEG`), the bound of the barrier Newton's line search, or None where no
+    edge is that far folded."""
+    x = np.asarray(x, np.float64)
+    tri = np.asarray(problem.triangles)
+    pairs = interior_edges(tri)
+    if not len(pairs) or not np.all(np.isfinite(x)):
+        return None
+    y = x[tri]
+    n = np.cross(y[:, 1] - y[:, 0], y[:, 2] - y[:, 0])
+    nn = np.linalg.norm(n, axis=1)
+    n = n / np.where(nn > 0, nn, 1.0)[:, None]
+    cos = np.sum(n[pairs[:, 0]] * n[pairs[:, 1]], axis=1)
+    angle = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    k = int(np.argmax(angle))
+    if angle[k] < FOLD_DEG - AT_FOLD_BOUND_DEG:
+        return None
+    i, j = sorted(set(tri[pairs[k, 0]].tolist()) & set(tri[pairs[k, 1]].tolist()))
+    return (f"the edge between nodes {i} and {j} is folded to {angle[k]:.2f} degrees, the "
+            f"{FOLD_DEG:g}-degree bound of the barrier Newton's line search: every descent "
+            "step from this state folds it further (a crease at the mesh size, which the "
+            "hinge bending resists less the more it is folded past 90 degrees)")
+
+
 def stopped_cause(problem, params, result: str, x, *, skin, precision="float64"):
     """`probe`'s verdict (a line) on a solve of ``problem`` under ``params`` that stopped
     short of equilibrium at its step cap or stagnated (``result`` 'max_steps_reached' or
-    'stagnation') in state x (N, 3) mm, evaluated in float64; None for any other result,
-    for non-finite x, and for a contact law without a pointwise ``energy`` (the paper's
-    law; the barrier, solved by its own Newton)."""
+    'stagnation') in state x (N, 3) mm, evaluated in float64; on the barrier law (solved
+    by its own Newton), `fold_bound_cause`.  None for any other result, for non-finite x,
+    for the paper's law (no pointwise ``energy``) and for a barrier solve that stopped
+    away from the fold bound."""
     contact = params.contact
-    if (result not in ("max_steps_reached", "stagnation")
-            or not (contact is None or hasattr(contact, "energy"))):
+    if result not in ("max_steps_reached", "stagnation"):
         return None
     if not np.all(np.isfinite(np.asarray(x))):
+        return None
+    if getattr(contact, "barrier", False):
+        return fold_bound_cause(problem, x)
+    if not (contact is None or hasattr(contact, "energy")):
         return None
     p64 = jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float64), params)
     return probe(problem, p64, jnp.asarray(np.asarray(x, np.float64)), skin=skin,

@@ -67,3 +67,35 @@ def test_a_residual_below_the_float32_rounding_floor_is_named_as_such():
                                                   / np.finfo(np.float64).eps)
     assert r32.at_floor and "rounding floor of float32" in r32.cause()
     assert not r64.at_floor and "slow" in r64.cause()
+
+
+def _hinge(theta_deg):
+    """Two triangles sharing the edge 0-1 (the x axis), the second turned by theta_deg
+    about it (0: flat): a fold of theta_deg between their normals."""
+    t = np.radians(theta_deg)
+    ref = np.array([[0.0, 0.0], [1.0, 0.0], [0.4, 0.9], [0.5, -0.8]])
+    x = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.4, 0.9, 0.0],
+                  [0.5, -0.8 * np.cos(t), -0.8 * np.sin(t)]])
+    prob, ref = make_problem(ref, np.array([[0, 1, 2], [1, 0, 3]]), fixed=np.array([0, 1]))
+    return prob, ref, x
+
+
+@pytest.mark.parametrize("theta", [150.0, 150.0 - 0.5 * stall.AT_FOLD_BOUND_DEG, 162.0])
+def test_a_barrier_solve_stopped_at_the_fold_bound_names_the_folded_edge(theta):
+    """The barrier Newton's line search keeps folds below checks.FOLD_DEG: a solve that
+    stopped with an edge at that bound gets a cause naming the edge and its angle; a
+    solve stopped with no edge near it (120 degrees), a converged one and one stopped on
+    the smooth law's own probe do not."""
+    from jaxvalve.contact import BarrierContact
+    prob, ref, x = _hinge(theta)
+    params = Params(ref=ref, material=MassSpring.linear(1.0), thickness=0.3, pressure=0.0,
+                    contact=BarrierContact())
+    for result in ("stagnation", "max_steps_reached"):
+        cause = stall.stopped_cause(prob, params, result, x, skin=0.5)
+        assert cause is not None and "nodes 0 and 1" in cause, cause
+        assert f"{theta:.2f} degrees" in cause and "150-degree bound" in cause
+    assert stall.stopped_cause(prob, params, "successful", x, skin=0.5) is None
+    _, _, x120 = _hinge(120.0)
+    assert stall.stopped_cause(prob, params, "stagnation", x120, skin=0.5) is None
+    assert stall.fold_bound_cause(prob, x120) is None
+    assert stall.fold_bound_cause(prob, np.full_like(x, np.nan)) is None
