@@ -29,6 +29,7 @@ import numpy as np
 from .mesh import cauchy_green_np
 
 __all__ = ["CheckReport", "triangle_checks", "inverted_triangles", "interior_edges",
+           "fold_angles",
            "gent_invariant", "crossing_depth"]
 
 J_MIN = 0.05
@@ -91,6 +92,21 @@ def gent_invariant(ref, triangles, x):
         return np.where(det > 0, tr + 1.0 / np.where(det > 0, det, 1.0) - 3.0, np.inf)
 
 
+def fold_angles(triangles, x):
+    """(pairs (E, 2) of triangles sharing an edge (`interior_edges`), the angle between
+    their normals (E,) degrees at positions x (N, 3), True (E,) where both triangles have
+    a normal (non-zero area))."""
+    tri = np.asarray(triangles)
+    y = np.asarray(x, np.float64)[tri]
+    n = np.cross(y[:, 1] - y[:, 0], y[:, 2] - y[:, 0])
+    nn = np.linalg.norm(n, axis=1)
+    n = n / np.where(nn > 0, nn, 1.0)[:, None]
+    pairs = interior_edges(tri)
+    cos = np.sum(n[pairs[:, 0]] * n[pairs[:, 1]], axis=1)
+    good = (nn[pairs[:, 0]] > 0) & (nn[pairs[:, 1]] > 0)
+    return pairs, np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))), good
+
+
 def triangle_checks(ref, triangles, x, *, j_min: float = J_MIN,
                     fold_deg: float = FOLD_DEG) -> CheckReport:
     """Collapsed and folded-over triangles of the state x (N, 3) of the mesh (ref (N, 2),
@@ -108,14 +124,7 @@ def triangle_checks(ref, triangles, x, *, j_min: float = J_MIN,
     disc = np.sqrt(np.maximum(0.25 * tr * tr - det, 0.0))
     lam_hi = np.sqrt(0.5 * tr + disc)
     lam_lo = np.sqrt(np.maximum(0.5 * tr - disc, 0.0))
-    Y = x[tri]
-    n = np.cross(Y[:, 1] - Y[:, 0], Y[:, 2] - Y[:, 0])
-    nn = np.linalg.norm(n, axis=1)
-    n = n / np.where(nn > 0, nn, 1.0)[:, None]
-    pairs = interior_edges(tri)
-    cos = np.sum(n[pairs[:, 0]] * n[pairs[:, 1]], axis=1)
-    good = (nn[pairs[:, 0]] > 0) & (nn[pairs[:, 1]] > 0)
-    angle = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    pairs, angle, good = fold_angles(tri, x)
     folded = pairs[good & (angle > fold_deg)]
     return CheckReport(min_J=float(J.min()), max_J=float(J.max()),
                        min_stretch=float(lam_lo.min()), max_stretch=float(lam_hi.max()),

@@ -14,9 +14,9 @@ contact force jumps by 0.27-0.44 N where a free edge has folded round another le
 The barrier law is solved by projected Newton, whose line search keeps every edge's fold
 below `checks.FOLD_DEG`.  Its solves stop short at that bound when a crease wants to fold
 further (`fold_bound_cause`): the hinge energy D w (1 - cos theta) resists a fold with a
-moment D w sin(theta), which falls past 90 degrees, so that every descent step from such a
-state folds the crease on (soft StVK, E = 0.05 MPa, h = 2 mm: the barrier closure at
-3 mmHg from the placement stagnated with one edge at 150 degrees; docs/known-limits.md).
+moment D w sin(theta), which falls past 90 degrees (soft StVK, E = 0.05 MPa, h = 2 mm:
+every stagnated barrier solve of the stress run ended with one edge at 150.00 degrees;
+docs/known-limits.md).
 """
 from __future__ import annotations
 
@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import assembly, equilibrium
-from .checks import FOLD_DEG, interior_edges
+from .checks import FOLD_DEG, fold_angles
 
 __all__ = ["StallReport", "probe", "stopped_cause", "fold_bound_cause", "TERMS"]
 
@@ -138,24 +138,19 @@ def fold_bound_cause(problem, x):
     `AT_FOLD_BOUND_DEG`), the bound of the barrier Newton's line search, or None where no
     edge is that far folded."""
     x = np.asarray(x, np.float64)
+    if not np.all(np.isfinite(x)):
+        return None
     tri = np.asarray(problem.triangles)
-    pairs = interior_edges(tri)
-    if not len(pairs) or not np.all(np.isfinite(x)):
+    pairs, angle, good = fold_angles(tri, x)
+    angle = np.where(good, angle, 0.0)
+    if not len(pairs) or angle.max() < FOLD_DEG - AT_FOLD_BOUND_DEG:
         return None
-    y = x[tri]
-    n = np.cross(y[:, 1] - y[:, 0], y[:, 2] - y[:, 0])
-    nn = np.linalg.norm(n, axis=1)
-    n = n / np.where(nn > 0, nn, 1.0)[:, None]
-    cos = np.sum(n[pairs[:, 0]] * n[pairs[:, 1]], axis=1)
-    angle = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
     k = int(np.argmax(angle))
-    if angle[k] < FOLD_DEG - AT_FOLD_BOUND_DEG:
-        return None
     i, j = sorted(set(tri[pairs[k, 0]].tolist()) & set(tri[pairs[k, 1]].tolist()))
     return (f"the edge between nodes {i} and {j} is folded to {angle[k]:.2f} degrees, the "
-            f"{FOLD_DEG:g}-degree bound of the barrier Newton's line search: every descent "
-            "step from this state folds it further (a crease at the mesh size, which the "
-            "hinge bending resists less the more it is folded past 90 degrees)")
+            f"{FOLD_DEG:g}-degree bound of the barrier Newton's line search, which admits "
+            "no step that folds it further (a crease at the mesh size, which the hinge "
+            "bending resists less the more it is folded past 90 degrees)")
 
 
 def stopped_cause(problem, params, result: str, x, *, skin, precision="float64"):
