@@ -42,6 +42,7 @@ from __future__ import annotations
 import contextlib
 import json
 import math
+import os
 import pathlib
 import re
 import tomllib
@@ -58,7 +59,7 @@ from .root import AorticRoot, distance_to_surface
 __all__ = [
     "RootFileError", "SurfaceFileError", "LandmarksFileError",
     "read_surface", "write_surface", "read_landmarks", "write_landmarks", "read_root",
-    "write_root",
+    "write_root", "check_out_dir",
     "UNITS",
 ]
 
@@ -441,3 +442,25 @@ def write_root(root, surface_path, landmarks_path):
                                  ".toml")
     write_surface(surface_path, *root.wall)
     write_landmarks(root, landmarks_path)
+
+
+def check_out_dir(path, flag: str = "--out") -> pathlib.Path | None:
+    """Check, before any solve, that the output folder ``path`` can be written (None: no
+    output folder): an existing folder must be writable; a missing one needs its nearest
+    existing parent to be a writable folder (it is created when the outputs are written,
+    so that a run refused later for bad input leaves nothing behind).  Raises
+    `ParameterError` naming ``flag`` (the parameter, in the messages)."""
+    if path is None:
+        return None
+    out = pathlib.Path(path)
+    if out.exists() and not out.is_dir():
+        raise ParameterError(f"{flag} '{out}' is an existing file; {flag} takes a folder "
+                             "(created if missing)")
+    base = out if out.exists() else next(
+        (p for p in out.absolute().parents if p.exists()), None)
+    if base is None or not base.is_dir():
+        raise ParameterError(f"{flag} '{out}': cannot create the folder under '{base}', "
+                             "which is not a folder")
+    if not os.access(base, os.W_OK | os.X_OK):
+        raise ParameterError(f"{flag} '{out}': '{base}' is not writable")
+    return out

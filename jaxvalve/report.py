@@ -31,7 +31,8 @@ def metrics_json(result) -> dict:
     `CoaptationResult.as_dict()` with per-leaflet lists, pair curves w / H and profiles;
     model, scene (all parameters), solves (per load: pressure, result, converged, steps,
     residual, wall_s, compile_s, solve_s, limit_pressure, status), timings (s) and mesh
-    sizes; limit_pressure (mmHg): where the valve passed a limit point, the highest
+    sizes; warnings (`SimulationResult.warnings`: design findings, e.g. surplus tissue);
+    limit_pressure (mmHg): where the valve passed a limit point, the highest
     pressure with an equilibrium, whose state the metrics describe (else null).
     """
     from . import __version__
@@ -53,6 +54,7 @@ def metrics_json(result) -> dict:
                                 if s.limit_pressure is not None), None),
         "residual": max(float(s.residual) for s in result.solves),
         "summary": result.summary(),
+        "warnings": list(result.warnings),
         "model": scene.model,
         "scene": scene.as_dict(),
         "solves": solves,

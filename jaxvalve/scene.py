@@ -122,6 +122,10 @@ class Scene:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ParameterError(f"{name} must be a finite pressure > 0 mmHg; got {v!r}")
+        if self.he_pressure > self.pressure:
+            raise ParameterError(f"he_pressure must be at most pressure = {self.pressure:g} "
+                                 f"mmHg (the effective-height load comes first, on the way "
+                                 f"to the closing load); got {self.he_pressure:g} mmHg")
         if not (isinstance(self.bending, (int, float)) and math.isfinite(self.bending)
                 and self.bending >= 0):
             raise ParameterError(f"bending must be a finite multiple >= 0 of the plate modulus; "

@@ -55,6 +55,23 @@ class SimulationResult:
         """Effective height (mm), measured at the effective-height load."""
         return self.metrics_he.h_e
 
+    @property
+    def warnings(self) -> tuple:
+        """Findings about the design a surgeon would want flagged (str each; none is an
+        error): a central coaptation point (the top of the three-leaflet zone, h_E) above
+        every commissure, a sign of surplus tissue: the leaflets meet higher than the
+        points they hang from."""
+        out = []
+        heights = np.asarray(self.valve.root.commissure_heights, float)
+        if np.isfinite(self.h_E) and self.h_E > heights.max():
+            out.append(f"surplus tissue: the central coaptation point lies "
+                       f"{self.h_E:.1f} mm above the annulus (h_E, at "
+                       f"{self.scene.he_pressure:g} mmHg), above the commissures "
+                       f"({heights.min():.1f}-{heights.max():.1f} mm): the leaflets meet "
+                       f"higher than they hang; a shorter free edge (b) or extension (a) "
+                       f"lowers it")
+        return tuple(out)
+
     def summary(self) -> dict:
         """The headline metrics (mm, %) of the valve."""
         m = self.metrics

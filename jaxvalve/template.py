@@ -12,7 +12,7 @@ E = (0, A_y + sqrt(b^2 - |AD|^2 / 4)).
     sutured edge A-B-C-D: 2a + pi r alpha / 180
     free edge A-E-D:      2b
 
-Valid only where r, a, b > 0, 0 < alpha < 360 degrees, |AD| > 0 and 2b > |AD|.  Every
+Valid only where r, a, b > 0, 0 < alpha <= 180 degrees (`ALPHA_RANGE`) and 2b > |AD|.  Every
 coordinate here is a smooth function of (r, alpha, a, b), written with ``numpy``-compatible
 operations so that the same formulas serve JAX tracing (see `outline`).
 """
@@ -25,7 +25,17 @@ import numpy as np
 
 from .errors import ParameterError
 
-__all__ = ["Template", "PAPER_TEMPLATES"]
+__all__ = ["Template", "PAPER_TEMPLATES", "ALPHA_RANGE"]
+
+
+#: valid arc angles alpha (degrees), open below and closed above: (0, 180].  Above 180
+#: degrees the arc B-C is more than a semicircle, so the tangent extensions A-B and C-D lean
+#: towards each other and the template narrows above its arc, where the sinus's suture line
+#: widens towards the commissures: placed in the benchmark root such a template is
+#: compressed the more, the larger alpha (smallest area ratio of a placed triangle 0.78 at
+#: 160 degrees, 0.72 at 180, 0.68 at 200, 0.61 at 250; h = 1.5 mm).  Within the range
+#: |AD| > 0 always holds.  The paper fixes alpha = 160.
+ALPHA_RANGE = (0.0, 180.0)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -50,14 +60,12 @@ class Template:
         for name in ("r", "a", "b"):
             if getattr(self, name) <= 0:
                 raise ParameterError(f"template {name} must be > 0 mm; got {getattr(self, name)}")
-        if not 0 < self.alpha < 360:
-            raise ParameterError(f"template alpha must lie in (0, 360) degrees; got {self.alpha}")
-        ad = self.chord
-        if ad <= 0:
+        if not ALPHA_RANGE[0] < self.alpha <= ALPHA_RANGE[1]:
             raise ParameterError(
-                f"template a = {self.a} mm turns A and D across the symmetry axis for alpha = "
-                f"{self.alpha} degrees (|AD| = {ad:.3f} mm); a must be < "
-                f"{-self.r * math.sin(self._beta) / math.cos(self._beta):.3f} mm")
+                f"template alpha must lie in ({ALPHA_RANGE[0]:g}, {ALPHA_RANGE[1]:g}] degrees "
+                f"(past 180 the sides A-B and C-D lean towards each other, a template no "
+                f"sinus scallop fits); got {self.alpha}")
+        ad = self.chord
         if 2 * self.b <= ad:
             raise ParameterError(
                 f"template b must exceed |AD| / 2 = {ad / 2:.3f} mm so that E lies above the "

@@ -4,7 +4,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import time
-from pathlib import Path
 from typing import Any, Callable
 
 import jax
@@ -13,6 +12,7 @@ import numpy as np
 
 from jaxvalve import Scene
 from jaxvalve.errors import ConvergenceError, ParameterError
+from jaxvalve.io import check_out_dir
 
 from . import loop
 from .evaluate import Evaluator
@@ -128,10 +128,10 @@ def optimize_template(scene: Scene | None = None, objective: Objective | None = 
         warm_start = True if evaluator is None else evaluator.warm_start
     options = dict(max_iter=max_iter, max_step=max_step, gtol=gtol, ftol=ftol, eps=eps,
                    adjoint=adjoint, warm_start=bool(warm_start))
+    out = check_out_dir(out, "out")    # before any closure: a bad folder loses nothing
     config = _config(scene, objective, optimizer, options)
     opt = loop.make_optimizer(optimizer)
     say = progress or (lambda s: None)
-    out = None if out is None else Path(out)
     if resume and out is None:
         raise ParameterError("resume needs the run directory (out)")
     kw = dict(adjoint=adjoint, max_step=max_step, gtol=gtol, ftol=ftol, max_iter=max_iter,

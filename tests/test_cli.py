@@ -44,3 +44,29 @@ def test_bad_input_exits_2_with_the_parameter_named_for_every_subcommand(capsys)
     assert err.startswith("jaxvalve membrane: error:") and "E" in err
     assert main(["simulate", "--h", "-1"]) == 2
     assert capsys.readouterr().err.startswith("jaxvalve simulate: error:")
+
+
+@pytest.mark.parametrize("argv", [
+    ["simulate", "--h", "3"],
+    ["sweep", "--table", "4", "--h", "3"],
+    ["optimize", "--h", "3"],
+])
+def test_an_output_path_onto_a_file_is_refused_before_any_solve(argv, tmp_path, capsys,
+                                                                 monkeypatch):
+    """--out naming an existing file exits 2 before the first solve (the solvers are
+    replaced by traps), naming --out and the path; the file is left as it was."""
+    import jaxvalve.batch
+    import jaxvalve.simulation
+    import optimize.evaluate
+
+    def trap(*a, **k):
+        raise AssertionError("a solve started before --out was checked")
+    monkeypatch.setattr(jaxvalve.simulation, "simulate", trap)
+    monkeypatch.setattr(jaxvalve.batch, "simulate_batch", trap)
+    monkeypatch.setattr(optimize.evaluate.Evaluator, "__init__", trap)
+    f = tmp_path / "results"
+    f.write_text("keep me")
+    assert main([*argv, "--out", str(f)]) == 2
+    err = capsys.readouterr().err
+    assert "--out" in err and str(f) in err and "existing file" in err
+    assert f.read_text() == "keep me"

@@ -51,6 +51,8 @@ def test_toml_scene_with_overrides(tmp_path):
     (dict(b=10.0), "b must exceed"),
     (dict(model="mass-spring", E1=0.1), "give all of E1, E2, E3"),
     (dict(precision="float16"), r"precision must be one of \('float64', 'float32'\)"),
+    (dict(alpha=200.0), r"alpha must lie in \(0, 180\] degrees"),
+    (dict(pressure=2.0), "he_pressure must be at most pressure = 2 mmHg"),
 ])
 def test_bad_scenes_are_rejected(kw, match):
     with pytest.raises(ParameterError, match=match):

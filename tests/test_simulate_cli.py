@@ -251,3 +251,23 @@ def test_json_flag_prints_only_json_and_no_figures_skips_pngs(run, tmp_path, cap
     assert "[jaxvalve]" in cap.err and "did NOT converge" in cap.err
     assert sorted(p.name for p in tmp_path.iterdir()) == [
         "leaflet_0.vtu", "leaflet_1.vtu", "leaflet_2.vtu", "metrics.json"]
+
+
+def test_a_central_coaptation_point_above_the_commissures_is_flagged(run):
+    """`SimulationResult.warnings` flags surplus tissue (h_E above every commissure) with
+    both figures, and only then; metrics.json carries the same list."""
+    from types import SimpleNamespace
+    _, result, out, _, stderr = run
+    root = SimpleNamespace(commissure_heights=np.array([16.8, 16.9, 16.7]))
+
+    def with_h_E(h):
+        return sim_mod.SimulationResult(
+            scene=result.scene, valve=SimpleNamespace(root=root), x=result.x,
+            x_he=result.x_he, metrics=result.metrics,
+            metrics_he=SimpleNamespace(h_e=h), solves=result.solves, timings={})
+    (w,) = with_h_E(18.5).warnings
+    assert "surplus tissue" in w and "18.5 mm" in w and "16.7-16.9 mm" in w
+    assert with_h_E(16.85).warnings == () and with_h_E(float("nan")).warnings == ()
+    data = json.loads((out / "metrics.json").read_text())
+    assert data["warnings"] == list(result.warnings)
+    assert all(f"warning: {w}" in stderr for w in result.warnings)

@@ -15,7 +15,7 @@ def _polyline_length(p):
     return float(np.sum(np.linalg.norm(np.diff(p, axis=0), axis=1)))
 
 
-@pytest.mark.parametrize("alpha", [120.0, 160.0, 200.0])
+@pytest.mark.parametrize("alpha", [90.0, 160.0, 180.0])
 def test_corners_satisfy_the_template_definition(alpha):
     t = Template(r=12.0, a=5.0, b=16.0, alpha=alpha)
     P = t.points
@@ -45,7 +45,9 @@ def test_edge_lengths_match_the_formulas():
     ("r", dict(r=0.0, a=5, b=15), "r must be > 0"),
     ("a", dict(r=12, a=-1, b=15), "a must be > 0"),
     ("b", dict(r=12, a=5, b=0), "b must be > 0"),
-    ("alpha", dict(r=12, a=5, b=15, alpha=360), "alpha must lie in"),
+    ("alpha", dict(r=12, a=5, b=15, alpha=360), r"alpha must lie in \(0, 180\]"),
+    ("alpha", dict(r=12, a=5, b=15, alpha=180.5), r"alpha must lie in \(0, 180\]"),
+    ("alpha", dict(r=12, a=5, b=15, alpha=0.0), r"alpha must lie in \(0, 180\]"),
     ("b", dict(r=12, a=5, b=12.0), "b must exceed"),
     ("r", dict(r=float("nan"), a=5, b=15), "r must be finite"),
 ])

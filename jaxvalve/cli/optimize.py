@@ -110,7 +110,9 @@ def run(args) -> int:
         print(f"[jaxvalve] {msg}", flush=True)
 
     from optimize.run import OPTIMIZE_MAX_STEPS, OPTIMIZE_RTOL
+    from ..io import check_out_dir
     scene = make_scene(args)
+    check_out_dir(args.out)                 # before any closure: a bad --out loses nothing
     if args.rtol is None:
         scene = scene.replace(rtol=OPTIMIZE_RTOL)      # gradients need a tight equilibrium
     if args.max_steps is None:

@@ -21,7 +21,8 @@ _FLAGS = {
                        "(benchmark 7.1)"),
         ("--b", float, "length of each free-edge segment A-E, E-D (free edge 2b), mm "
                        "(benchmark 15)"),
-        ("--alpha", float, "angle subtended by the arc B-C, degrees (benchmark 160)"),
+        ("--alpha", float, "angle subtended by the arc B-C, degrees, in (0, 180] "
+                           "(benchmark 160)"),
         ("--h", float, "target mesh edge length, mm (benchmark 0.88: ~1300 triangles a "
                        "leaflet)"),
     ],
@@ -150,6 +151,7 @@ def _table(result):
 def run(args) -> int:
     from ..report import metrics_json, write_outputs
     from ..simulation import simulate
+    from ..io import check_out_dir
 
     stream = sys.stderr if args.json else sys.stdout
 
@@ -157,6 +159,7 @@ def run(args) -> int:
         print(f"[jaxvalve] {msg}", file=stream, flush=True)
 
     scene = make_scene(args)
+    check_out_dir(args.out)                 # before the solve: a bad --out loses nothing
     result = simulate(scene, progress=say, throw=False)
     written = []
     if args.out is not None:
@@ -167,6 +170,8 @@ def run(args) -> int:
         print(_table(result))
     if written:
         say(f"wrote {len(written)} files to {args.out}")
+    for w in result.warnings:
+        print(f"jaxvalve simulate: warning: {w}", file=sys.stderr)
     lim = [r for r in result.solves if r.result == "limit_point"]
     if lim:
         print(f"jaxvalve simulate: warning: LIMIT POINT: the valve has no equilibrium above "

@@ -20,7 +20,6 @@ import argparse
 import csv
 import math
 import sys
-from pathlib import Path
 
 from ..scene import BENCHMARK_H
 
@@ -254,6 +253,7 @@ def run(args) -> int:
     from ..leaflet_mesh import mesh_leaflet
     from ..scene import Scene
     from .. import valve as V
+    from ..io import check_out_dir
 
     def say(msg):
         print(f"[jaxvalve sweep] {msg}", file=sys.stderr, flush=True)
@@ -265,6 +265,7 @@ def run(args) -> int:
     scene = Scene(h=args.h, model=groups[0][0], rtol=args.rtol, max_steps=args.max_steps,
                   pressure=args.pressure, he_pressure=args.he_pressure,
                   fallback=args.fallback)
+    out = check_out_dir(args.out)           # before the solves: a bad --out loses nothing
     total = sum(len(m) for _, m in groups)
     say(f"table {args.table}: {total} members in {len(groups)} batch"
         f"{'es' * (len(groups) != 1)}, h = {args.h} mm")
@@ -284,8 +285,7 @@ def run(args) -> int:
         say(f"{_bar(done, total)}  ({model}: {res.timings['solve']:.1f} s solve, "
             f"{res.timings['compile']:.1f} s compile)")
     written = []
-    if args.out is not None:
-        out = Path(args.out)
+    if out is not None:
         try:
             out.mkdir(parents=True, exist_ok=True)
             written.append(write_csv(out / f"table{args.table}.csv", rows))
