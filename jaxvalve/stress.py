@@ -399,7 +399,7 @@ def run_group(valve, *, template: str, mesh: str, model: str, precision: str,
     the placement, then at each P > 3 from that state.  ``extra``: more `Scene` fields
     (Jm, E1, E2, E3, ...), applied to every run.  Returns the `RunRecord`s."""
     extra = dict(extra or {})
-    tag = " ".join(f"{k}={v}" if isinstance(v, bool) else f"{k}={v:g}"
+    tag = " ".join(f"{k}={v}" if isinstance(v, (bool, str)) else f"{k}={v:g}"
                    for k, v in extra.items())
     tpl = valve.leaflet.template
     out = []
