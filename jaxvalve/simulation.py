@@ -60,10 +60,12 @@ class SimulationResult:
         """Findings about the design a surgeon would want flagged (str each; none is an
         error): a central coaptation point (the top of the three-leaflet zone, h_E) above
         every commissure, a sign of surplus tissue: the leaflets meet higher than the
-        points they hang from."""
+        points they hang from.  None for a state that is not an equilibrium (h_E is
+        measured at the effective-height load: its solve must have converged)."""
         out = []
         heights = np.asarray(self.valve.root.commissure_heights, float)
-        if np.isfinite(self.h_E) and self.h_E > heights.max():
+        if (self.solves[0].converged and np.isfinite(self.h_E)
+                and self.h_E > heights.max()):
             out.append(f"surplus tissue: the central coaptation point lies "
                        f"{self.h_E:.1f} mm above the annulus (h_E, at "
                        f"{self.scene.he_pressure:g} mmHg), above the commissures "

@@ -70,3 +70,44 @@ def test_an_output_path_onto_a_file_is_refused_before_any_solve(argv, tmp_path, 
     err = capsys.readouterr().err
     assert "--out" in err and str(f) in err and "existing file" in err
     assert f.read_text() == "keep me"
+
+
+def test_the_console_command_drops_only_the_spurious_cache_loader_lines():
+    """`jaxvalve.cli.run` filters file descriptor 2: a C-level write of XLA's spurious
+    cache-loader warning is dropped, every other line (Python's and C's) passes, in order,
+    and the exit code is main's."""
+    import subprocess
+    import sys
+    code = (
+        "import os, sys\n"
+        "import jaxvalve.cli as c\n"
+        "def fake(argv=None):\n"
+        "    os.write(2, b'E1126 cpu_aot_loader.cc:195] Loading XLA:CPU AOT result. Target "
+        "machine feature +prefer-no-gather is not supported\\n')\n"
+        "    os.write(2, b'a C-level line\\n')\n"
+        "    print('a Python line', file=sys.stderr)\n"
+        "    return 3\n"
+        "c.main = fake\n"
+        "c.run()\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 3
+    assert done.stderr == "a C-level line\na Python line\n"
+
+
+def test_a_warm_compilation_cache_prints_no_cache_loader_warning(tmp_path):
+    """The console command run twice on one compilation cache (the second run loads the
+    cached executables): no line of the second run's stderr comes from XLA's cache
+    loader, while jaxvalve's own warnings still reach it."""
+    import os
+    import subprocess
+    import sys
+    env = dict(os.environ, JAXVALVE_CACHE_DIR=str(tmp_path / "xla"))
+    argv = [sys.executable, "-c", "from jaxvalve.cli import run; run()", "simulate",
+            "--h", "3", "--max-steps", "20", "--no-fallback"]
+    runs = [subprocess.run(argv, capture_output=True, text=True, env=env, timeout=600)
+            for _ in range(2)]
+    assert any((tmp_path / "xla").iterdir())          # the first run filled the cache
+    for done in runs:
+        assert done.returncode == 3 and "did NOT converge" in done.stderr
+        assert "cpu_aot_loader" not in done.stderr

@@ -260,14 +260,17 @@ def test_a_central_coaptation_point_above_the_commissures_is_flagged(run):
     _, result, out, _, stderr = run
     root = SimpleNamespace(commissure_heights=np.array([16.8, 16.9, 16.7]))
 
-    def with_h_E(h):
+    def with_h_E(h, converged=True):
         return sim_mod.SimulationResult(
             scene=result.scene, valve=SimpleNamespace(root=root), x=result.x,
             x_he=result.x_he, metrics=result.metrics,
-            metrics_he=SimpleNamespace(h_e=h), solves=result.solves, timings={})
+            metrics_he=SimpleNamespace(h_e=h),
+            solves=(SimpleNamespace(converged=converged),) * 2, timings={})
     (w,) = with_h_E(18.5).warnings
     assert "surplus tissue" in w and "18.5 mm" in w and "16.7-16.9 mm" in w
     assert with_h_E(16.85).warnings == () and with_h_E(float("nan")).warnings == ()
+    # an unconverged state is no design: nothing is flagged (the module's run is one)
+    assert with_h_E(18.5, converged=False).warnings == ()
+    assert not result.solves[0].converged and result.warnings == ()
     data = json.loads((out / "metrics.json").read_text())
-    assert data["warnings"] == list(result.warnings)
-    assert all(f"warning: {w}" in stderr for w in result.warnings)
+    assert data["warnings"] == [] and "surplus" not in stderr
