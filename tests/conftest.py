@@ -3,6 +3,8 @@ quicker-compiling CPU emitters, and no persistent XLA compilation cache: every w
 the executables it compiled itself."""
 import os
 
+import pytest
+
 
 def _pin_worker():
     """Pin each xdist worker to one CPU of its own (gw0 to the first allowed CPU, gw1 to
@@ -55,17 +57,24 @@ LONGEST_FIRST = (
     "tests/test_solvers.py",         # 141
     "tests/test_design.py",          # 136
     "tests/test_soft_pairs.py",      # 131
+    "tests/test_closure_driver.py",  # 118
     "tests/stress/test_stress_special.py",   # 102
     "tests/test_coaptation.py",      # 95
     "tests/stress/test_stress_matrix.py",    # 78
     "tests/test_validation.py",      # 55
+    "tests/test_barrier_closure.py",  # 49
 )
 
 
 def pytest_collection_modifyitems(session, config, items):
-    """Order the files longest first (`LONGEST_FIRST`); the order inside a file is kept."""
+    """Order the files longest first (`LONGEST_FIRST`); the order inside a file is kept.
+    Every test of a `LONGEST_FIRST` file is marked ``slow``: ``pytest -m "not slow"`` is
+    the fast tier for development (docs/testing-and-platform.md); the CI runs all."""
     rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
     items.sort(key=lambda it: rank.get(it.nodeid.split("::")[0], len(rank)))
+    for it in items:
+        if it.nodeid.split("::")[0] in rank:
+            it.add_marker(pytest.mark.slow)
 
 
 def pytest_configure(config):
