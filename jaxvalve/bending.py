@@ -1,6 +1,6 @@
 """Bending of a thin sheet: a discrete hinge energy (Grinspun et al. 2003, "discrete shells").
 
-DESIGN.md models a leaflet as a membrane, which has no bending stiffness.  A membrane that
+The specification models a leaflet as a membrane, which has no bending stiffness.  A membrane that
 carries more length than it has room for (a free edge of 30 mm between commissures 22.5 mm
 apart) then has zero-energy crumpling modes, and its folds sharpen to the mesh size: an
 equilibrium solver stalls there.  Real pericardium is a plate of thickness H, with the

@@ -64,7 +64,7 @@ class Params:
     fibre_angle: radians, fibre direction in the 2D template frame (scalar), or per
         triangle edge (M, 3); used by anisotropic spring models only.
     contact: None, `SmoothContact` or `PaperContact`.
-    bending: None (a pure membrane, as DESIGN.md) or `jaxvalve.bending.Bending`.
+    bending: None (a pure membrane, as specified) or `jaxvalve.bending.Bending`.
     """
 
     ref: Any

@@ -11,8 +11,8 @@ Conventions (units mm)
   the aortic wall from commissure i down through its nadir (its most ventricular point) up
   to commissure i+1: ``paths[i][0] == commissures[i]``, ``paths[i][-1] ==
   commissures[(i+1) % 3]`` (exactly; endpoints within the tolerance are snapped).
-* The annulus plane is normal to the axis through the three lowest path points (DESIGN.md,
-  effective height).  Its axial coordinate is `AorticRoot.annulus_level`.
+* The annulus plane is normal to the axis through the three lowest path points
+  (docs/metrics.md, effective height).  Its axial coordinate is `AorticRoot.annulus_level`.
 
 Benchmark root (`benchmark_root`)
 ---------------------------------

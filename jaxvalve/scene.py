@@ -1,6 +1,6 @@
 """A simulation scene: root, template, mesh size, material, load, contact law and solver.
 
-`Scene()` is the benchmark valve (DESIGN.md, Table 1 setting).  A scene is plain data; it
+`Scene()` is the benchmark valve (the paper's Table 1 setting; docs/benchmarks.md).  A scene is plain data; it
 can be read from TOML (`Scene.from_toml`) and every field can be overridden.
 
 Benchmark template (chosen from anatomy before any closure was run; docs/benchmarks.md):
@@ -59,7 +59,7 @@ class Scene:
     (default 1e-4: the coaptation metrics then agree with a 1e-6 solve to ~0.01 mm; see
     docs/benchmarks.md, "Run time against error").
     bending: plate bending stiffness as a multiple of the physical D = E H^3 / (12 (1 -
-    nu^2)) (`jaxvalve.bending`); 0 gives the pure membrane of DESIGN.md.
+    nu^2)) (`jaxvalve.bending`); 0 gives the specified pure membrane.
     precision: the floating type of the solve, "float64" (default) or "float32" (states,
     parameters and forces; the metrics are always measured in float64).  float32 forces
     carry rounding near 1e-4 of ||F_pressure|| at 3 mmHg, so a float32 closure may stop

@@ -22,7 +22,7 @@ group of (E, P) costs one closure per load.  The run is judged on its final stat
 it returns; the 3 mmHg stage's result is recorded with it (``stage1``).
 
 The paper's Fig. 3 templates (a) r=11, a=11, b=11; (b) r=12, a=13, b=13; (c) r=13, a=13,
-b=14 mm, alpha = 160 degrees, break DESIGN.md's 2b > |AD| (docs/benchmarks.md).  The
+b=14 mm, alpha = 160 degrees, break the template's rule 2b > |AD| (docs/benchmarks.md).  The
 suite tries each as given (a `ParameterError` naming b is the expected, clear report) and
 runs the matrix on the nearest valid variant: the same r and a, with b = |AD|/2 + 1 mm
 (`paper_templates`).  The root is the benchmark root fitted to each template's sutured

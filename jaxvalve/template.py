@@ -1,4 +1,4 @@
-"""The flat Ozaki leaflet template (paper Fig. 2; DESIGN.md "Leaflet template").
+"""The flat Ozaki leaflet template (paper Fig. 2).
 
 Template frame (mm): O = (0, 0) is the centre of the bottom arc, y points to the free
 edge.  The arc B-C has radius r and subtends alpha (default 160 degrees) about the
@@ -174,7 +174,7 @@ def free_point(t, r, a, b, alpha, xp=np):
     return xp.where((u <= 1)[:, None], first, second)
 
 
-# Paper Fig. 3.  Under DESIGN.md's geometry these fail 2b > |AD| (|AD| = 25.5, 28.2,
+# Paper Fig. 3.  Under the geometry above these fail 2b > |AD| (|AD| = 25.5, 28.2,
 # 30.1 mm against 2b = 22, 26, 28 mm); kept as data so that the error can be shown.
 PAPER_TEMPLATES = {"a": dict(r=11.0, a=11.0, b=11.0), "b": dict(r=12.0, a=13.0, b=13.0),
                    "c": dict(r=13.0, a=13.0, b=14.0)}

@@ -67,7 +67,8 @@ def test_all_solvers_reach_the_same_equilibrium(disk, mat):
 
 
 def test_paper_stopping_rule_stops_far_from_equilibrium(disk):
-    """||dx^n|| < 1e-3 ||dx^0|| is reached long before a 1e-6 force residual (DESIGN.md)."""
+    """||dx^n|| < 1e-3 ||dx^0|| (the paper's stopping rule) is reached long before a 1e-6
+    force residual."""
     prob, ref, x0 = disk
     params = _params(ref)
     paper = equilibrium.solve(prob, params, x0, FixedPoint())

@@ -57,7 +57,8 @@ def test_impossible_templates_are_rejected_with_the_bound(field, kw, match):
 
 
 def test_paper_fig3_templates_violate_the_design_validity_rule():
-    """Documented discrepancy: under DESIGN.md's geometry 2b < |AD| for all three."""
+    """Documented discrepancy (docs/benchmarks.md): under the template geometry 2b < |AD|
+    for all three."""
     for kw in PAPER_TEMPLATES.values():
         with pytest.raises(ParameterError, match="b must exceed"):
             Template(**kw)

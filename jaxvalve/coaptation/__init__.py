@@ -1,4 +1,4 @@
-"""Coaptation characteristics of a closed valve (DESIGN.md, "Coaptation characteristics").
+"""Coaptation characteristics of a closed valve (definitions: docs/metrics.md).
 
 Inputs: deformed nodes x (N, 3) mm of all leaflets, oriented triangles (M, 3), leaflet
 ids body (N,) in 0..L-1, template coordinates ref (N, 2) mm, free-edge mask (N,), valve
