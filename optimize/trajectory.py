@@ -73,34 +73,42 @@ def plot_run(out: Path, records: list, alpha: float, targets=()):
 
 
 def figure(records: list, alpha: float, targets=(), plt=None):
-    """The run's figure: objective and metrics (with their targets, dotted) against the
-    iteration, and the template outline at the start and at the end (mm)."""
+    """The run's figure: the objective, the smooth metrics in mm and those in % (one
+    panel per unit, each target a labelled dotted line in its metric's colour) against
+    the iteration (integer ticks), and the template outline at the start and at the end
+    (mm)."""
+    from matplotlib.ticker import MaxNLocator
+
+    from .targets import METRICS
     if plt is None:
         from jaxvalve.plots import _pyplot
         plt = _pyplot()
     it = [r["iteration"] for r in records]
-    fig, ax = plt.subplots(1, 3, figsize=(15, 4.2))
+    names = [k[2:] for k in records[0] if k.startswith("m:") and k != "m:area"]
+    units = [u for u in ("mm", "%") if any(METRICS[n][3] == u for n in names)]
+    fig, ax = plt.subplots(1, 2 + len(units), figsize=(5 * (2 + len(units)), 4.2))
     ax[0].semilogy(it, [max(r["objective"], 1e-12) for r in records], "o-")
-    ax[0].set_xlabel("iteration")
     ax[0].set_ylabel("objective")
-    names = [k for k in records[0] if k.startswith("m:") and k != "m:area"]
-    for k in names:
-        line, = ax[1].plot(it, [r[k] for r in records], "o-", label=k[2:])
-        for t in targets:
-            if t.metric == k[2:]:
-                for v in (t.lower, t.upper, t.value):
+    for a, unit in zip(ax[1:], units):
+        for n in (n for n in names if METRICS[n][3] == unit):
+            line, = a.plot(it, [r[f"m:{n}"] for r in records], "o-", label=n)
+            for t in (t for t in targets if t.metric == n):
+                for v, how in ((t.lower, ">="), (t.upper, "<="), (t.value, "=")):
                     if v is not None:
-                        ax[1].axhline(v, color=line.get_color(), ls=":", lw=1)
-    ax[1].set_xlabel("iteration")
-    ax[1].set_ylabel("smooth metric (mm, %)")
-    ax[1].legend(fontsize=8)
+                        a.axhline(v, color=line.get_color(), ls=":", lw=1.2,
+                                  label=f"target {n} {how} {v:g} {unit}")
+        a.set_ylabel(f"smooth metric ({unit})")
+        a.legend(fontsize=8)
+    for a in ax[:-1]:
+        a.set_xlabel("iteration")
+        a.xaxis.set_major_locator(MaxNLocator(integer=True))
     for r, style, lab in ((records[0], "--", "start"), (records[-1], "-", "end")):
         p = template_outline(r["r"], r["a"], r["b"], alpha)
-        ax[2].plot(p[:, 0], p[:, 1], style,
-                   label=f"{lab}: r={r['r']:.2f}, a={r['a']:.2f}, b={r['b']:.2f} mm")
-    ax[2].set_aspect("equal")
-    ax[2].set_xlabel("mm")
-    ax[2].legend(fontsize=8)
-    ax[2].set_title("template")
+        ax[-1].plot(p[:, 0], p[:, 1], style,
+                    label=f"{lab}: r={r['r']:.2f}, a={r['a']:.2f}, b={r['b']:.2f} mm")
+    ax[-1].set_aspect("equal")
+    ax[-1].set_xlabel("mm")
+    ax[-1].legend(fontsize=8)
+    ax[-1].set_title("template")
     fig.tight_layout()
     return fig
