@@ -11,7 +11,7 @@ import sys
 
 import numpy as np
 
-__all__ = ["plot_valve", "plot_profiles", "plot_pair_heights"]
+__all__ = ["plot_valve", "plot_profiles", "plot_pair_heights", "profile_distance"]
 
 COLOURS = ("tab:blue", "tab:orange", "tab:green")
 # distinct styles, so that the (often identical) curves of a symmetric valve stay visible
@@ -77,6 +77,23 @@ def plot_valve(result, ax=None, state="closed"):
     return fig
 
 
+#: profiles of the three leaflets closer than this (mm, `profile_distance`) are drawn as one
+COINCIDE_MM = 0.05
+
+
+def profile_distance(profiles) -> float:
+    """The largest distance (mm, template coordinates) from a segment end of one leaflet's
+    coaptation profile to the nearest segment end of another's, over all pairs (both
+    ways): 0 for identical profiles; inf where one profile is empty and another is not."""
+    from scipy.spatial import cKDTree
+    pts = [np.asarray(p, float).reshape(-1, 2) for p in profiles]
+    if all(len(p) == 0 for p in pts):
+        return 0.0
+    if any(len(p) == 0 for p in pts):
+        return float("inf")
+    return max(float(cKDTree(b).query(a)[0].max()) for a in pts for b in pts if a is not b)
+
+
 def plot_profiles(result, ax=None):
     """Coaptation profiles on the flat template: its outline (grey) and each leaflet's
     zone boundary (gap = g_c) at the closing load, in template coordinates (mm)."""
@@ -87,12 +104,19 @@ def plot_profiles(result, ax=None):
     pts = np.asarray(lm.points)
     for idx in (lm.sutured, lm.free):
         ax.plot(pts[idx, 0], pts[idx, 1], color="0.5", linewidth=1.0)
-    for i, seg in enumerate(result.metrics.profile):
-        st = STYLES[i % 3]
-        ax.add_collection(LineCollection(np.asarray(seg).reshape(-1, 2, 2), colors=COLOURS[i],
-                                         linewidths=st["linewidth"],
-                                         linestyles=st["linestyle"],
-                                         label=f"leaflet {i} ({len(seg)} segments)"))
+    profiles = [np.asarray(seg).reshape(-1, 2, 2) for seg in result.metrics.profile]
+    apart = profile_distance(profiles)
+    if apart <= COINCIDE_MM:         # one line, and the figure says so
+        ax.add_collection(LineCollection(profiles[0], colors="k", linewidths=2.0,
+                                         label=f"leaflets 0, 1, 2: the profiles coincide "
+                                               f"(within {max(apart, 0.0):.2g} mm)"))
+    else:
+        for i, seg in enumerate(profiles):
+            st = STYLES[i % 3]
+            ax.add_collection(LineCollection(seg, colors=COLOURS[i],
+                                             linewidths=st["linewidth"],
+                                             linestyles=st["linestyle"],
+                                             label=f"leaflet {i} ({len(seg)} segments)"))
     ax.set_aspect("equal")
     ax.autoscale_view()
     ax.set_xlabel("template x (mm)")

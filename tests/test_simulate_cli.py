@@ -274,3 +274,28 @@ def test_a_central_coaptation_point_above_the_commissures_is_flagged(run):
     assert not result.solves[0].converged and result.warnings == ()
     data = json.loads((out / "metrics.json").read_text())
     assert data["warnings"] == [] and "surplus" not in stderr
+
+
+def test_coinciding_profiles_are_drawn_once_and_said_to_coincide(run):
+    """`profile_distance` is 0 for identical profiles and the largest end-to-nearest-end
+    distance otherwise; `plot_profiles` draws three coinciding profiles as one line whose
+    label says so, and three distinct ones as three."""
+    import dataclasses
+    import matplotlib.pyplot as plt
+    from jaxvalve.plots import COINCIDE_MM, plot_profiles, profile_distance
+    _, result, _, _, _ = run
+    seg = np.array([[[0.0, 0.0], [1.0, 0.0]], [[1.0, 0.0], [2.0, 1.0]]])
+    assert profile_distance([seg, seg, seg]) == 0.0
+    assert profile_distance([seg, seg, seg + [0.0, 0.3]]) == pytest.approx(0.3)
+    assert profile_distance([seg, seg, seg[:0]]) == np.inf
+    assert profile_distance([seg[:0]] * 3) == 0.0
+    same = dataclasses.replace(result, metrics=dataclasses.replace(
+        result.metrics, profile=[seg, seg + 0.2 * COINCIDE_MM, seg]))
+    apart = dataclasses.replace(result, metrics=dataclasses.replace(
+        result.metrics, profile=[seg, seg + 1.0, seg]))
+    for res, n, text in ((same, 1, "the profiles coincide (within 0.014 mm)"),
+                         (apart, 3, "leaflet 2 (2 segments)")):
+        fig = plot_profiles(res)
+        labels = [c.get_label() for c in fig.axes[0].collections]
+        assert len(labels) == n and text in labels[-1]
+        plt.close(fig)
