@@ -74,10 +74,13 @@ def _filter_stderr():
     import threading
 
     sys.stderr.flush()
-    r, w = os.pipe()
-    real, keep = os.dup(2), os.dup(2)
-    os.dup2(w, 2)
-    os.close(w)
+    try:
+        r, w = os.pipe()
+        real, keep = os.dup(2), os.dup(2)
+        os.dup2(w, 2)
+        os.close(w)
+    except OSError:               # no stderr to filter (closed, or no such descriptor)
+        return lambda: None
 
     def pump():
         with os.fdopen(r, "rb") as src, os.fdopen(real, "wb", buffering=0) as dst:
