@@ -9,8 +9,9 @@ leaflet gap, the sharpest fold and the lowest real eigenvalue of the exact Jacob
 at the state reached (`barrier_newton.lowest_modes`, N/mm; the median diagonal of the
 tangent is printed for scale): negative, a saddle (the valve would not rest there); near
 zero, a nearly stiffness-free mode; and the share of the residual force along that mode
-(|F . v| / (|F| |v|)): near 1, a solve stopped there is stuck on that mode.  ``--push``: the solver's ``max_pushes`` (push off a saddle along its
-unstable mode and solve on).
+(|F . v| / (|F| |v|)): near 1, a solve stopped there is stuck on that mode.
+``--push``: the solver's ``max_pushes`` (push off a saddle along its unstable mode and
+solve on).
 
     python benchmarks/branch_stability.py [--model stvk] [--E 0.05] [--push 0]
         [--P 41.5 60.75 70.38 75.19 76.39 76.99 77.59 80] [--steps 300] [--out FILE]

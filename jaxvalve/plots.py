@@ -91,7 +91,8 @@ def profile_distance(profiles) -> float:
         return 0.0
     if any(len(p) == 0 for p in pts):
         return float("inf")
-    return max(float(cKDTree(b).query(a)[0].max()) for a in pts for b in pts if a is not b)
+    return max(float(cKDTree(pts[j]).query(pts[i])[0].max())
+               for i in range(len(pts)) for j in range(len(pts)) if i != j)
 
 
 def plot_profiles(result, ax=None):

@@ -1,7 +1,8 @@
 """A simulation scene: root, template, mesh size, material, load, contact law and solver.
 
-`Scene()` is the benchmark valve (the paper's Table 1 setting; docs/benchmarks.md).  A scene is plain data; it
-can be read from TOML (`Scene.from_toml`) and every field can be overridden.
+`Scene()` is the benchmark valve (the paper's Table 1 setting; docs/benchmarks.md).  A
+scene is plain data; it can be read from TOML (`Scene.from_toml`) and every field can be
+overridden.
 
 Benchmark template (chosen from anatomy before any closure was run; docs/benchmarks.md):
 free edge 2b = 30 mm (Labrosse et al. 2006, free-edge length 30 mm), arc radius r = 12 mm

@@ -70,8 +70,7 @@ class SimulationResult:
                        f"{self.h_E:.1f} mm above the annulus (h_E, at "
                        f"{self.scene.he_pressure:g} mmHg), above the commissures "
                        f"({heights.min():.1f}-{heights.max():.1f} mm): the leaflets meet "
-                       f"higher than they hang; a shorter free edge (b) or extension (a) "
-                       f"lowers it")
+                       f"higher than they hang")
         return tuple(out)
 
     def summary(self) -> dict:

@@ -31,9 +31,9 @@ __all__ = ["Template", "PAPER_TEMPLATES", "ALPHA_RANGE"]
 #: valid arc angles alpha (degrees), open below and closed above: (0, 180].  Above 180
 #: degrees the arc B-C is more than a semicircle, so the tangent extensions A-B and C-D lean
 #: towards each other and the template narrows above its arc, where the sinus's suture line
-#: widens towards the commissures: placed in the benchmark root such a template is
-#: compressed the more, the larger alpha (smallest area ratio of a placed triangle 0.78 at
-#: 160 degrees, 0.72 at 180, 0.68 at 200, 0.61 at 250; h = 1.5 mm).  Within the range
+#: widens towards the commissures: placed in the benchmark root, from 160 degrees up such a
+#: template is compressed the more, the larger alpha (smallest area ratio of a placed
+#: triangle 0.78 at 160 degrees, 0.72 at 180, 0.68 at 200, 0.61 at 250; h = 1.5 mm).  Within the range
 #: |AD| > 0 always holds.  The paper fixes alpha = 160.
 ALPHA_RANGE = (0.0, 180.0)
 
