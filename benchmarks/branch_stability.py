@@ -34,8 +34,8 @@ from jaxvalve.leaflet_mesh import mesh_leaflet  # noqa: E402
 from jaxvalve.scene import Scene  # noqa: E402
 from jaxvalve.solvers import BarrierNewton, solve_barrier  # noqa: E402
 from jaxvalve.solvers.barrier_newton import _Model, lowest_modes  # noqa: E402
-from jaxvalve.stress import (HE_PRESSURE, STRESS_H, _first_stage, make_valve,  # noqa: E402
-                             paper_templates)
+from stress_suite import (HE_PRESSURE, STRESS_H, _first_stage, make_valve,  # noqa: E402
+                          paper_templates)
 from jaxvalve.xla_setup import platform_summary  # noqa: E402
 
 

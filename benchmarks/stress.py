@@ -1,4 +1,4 @@
-"""Stress suite for numerical stability (issue 5): every run converges cleanly or says why not.
+"""Stress suite for numerical stability: every run converges cleanly or says why not.
 
     nice -n 15 .venv/bin/python benchmarks/stress.py            # full matrix + hard cases
     .venv/bin/python benchmarks/stress.py --quick               # a small part (minutes)
@@ -11,7 +11,7 @@ precision: a randomly perturbed mesh, a mesh with sliver triangles (smallest ang
 degrees), each at E = 1 MPa, and a start with the leaflets pushed 0.75-2.5 mm through
 one another (80 mmHg); Gent near its stretch limit (Jm = 0.3, 0.1); the mass-spring
 model with the piecewise modulus of eq. 3.3 (paper Tables 4-5).  Each run is classified
-by `jaxvalve.stress` as converged (all checks passed), reported (non-convergence with its
+by `stress_suite.py` as converged (all checks passed), reported (non-convergence with its
 cause, or a clear error) or silently wrong.
 
 Prints the pass table (per model x precision: tried, converged, reported, silently wrong)
@@ -32,7 +32,7 @@ HERE = Path(__file__).resolve().parent
 
 def _parse(argv):
     from jaxvalve.scene import MODELS, PRECISIONS
-    from jaxvalve.stress import MATRIX_E, MATRIX_P, STRESS_H
+    from stress_suite import MATRIX_E, MATRIX_P, STRESS_H
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--models", nargs="+", default=list(MODELS), choices=MODELS)
     ap.add_argument("--precisions", nargs="+", default=list(PRECISIONS), choices=PRECISIONS)
@@ -54,7 +54,7 @@ def _parse(argv):
 def main(argv=None):
     import jax
     jax.config.update("jax_enable_x64", True)
-    from jaxvalve import stress as S
+    import stress_suite as S
     from jaxvalve.leaflet_mesh import mesh_leaflet
 
     args = _parse(argv)

@@ -16,14 +16,14 @@ there is no batched program: the driver closes the members one after the other.
 The solver loop (`lax.while_loop` under vmap) runs until every member has finished and
 keeps a finished member's state.  The decisions inside it (pair-list rebuilds, the contact
 energy's prefix length, FIRE's mass refresh) are taken per member but computed only for
-the members that need them (`jaxvalve.batching`).  Two ways to run the steps:
+the members that need them (`jaxvalve.vmap_control`).  Two ways to run the steps:
 
 * ``vectorize=False`` (default on CPU): each member runs its own solver loop, one after
   the other (`iterate(members_apart=True)`), the compiled loop of a single solve.  A
   member's result is then `simulate`'s to the last bit, whatever the batch (tested), and
   finished members cost nothing.
 * ``vectorize=True`` (default on GPU): the steps of all members are one array program,
-  and so are the rebuilds (`batching.branches("select")`: run for the whole batch when any
+  and so are the rebuilds (`vmap_control.branches("select")`: run for the whole batch when any
   member is due, each member keeping its own branch), so a step's cost hardly grows with
   the batch on a GPU.  Once few members are left (``handoff``, default max(1, B // 16)),
   each of them finishes in its own single-solve loop, so a straggler does not pay a
@@ -51,7 +51,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import contact as _contact
-from .batching import branches
+from .vmap_control import branches
 from .contact.neighbours import DEFAULT_SCAN_RATIO, MAX_GROUP
 from .contact.soft_pairs import SoftPairs, stale_soft_pairs
 from .equilibrium import _make_args, contact_cutoff, stale_pairs, update_pairs
@@ -273,12 +273,12 @@ def _solve(solver, problem, params, x0, nbrs, skin, loop, handoff=0):
     steps = evals = hvps = jnp.asarray(0)
     y = x0
     for warm in getattr(solver, "warm_start", None) or ():
-        y, args, st, _, n = iterate(warm, system, y, args, members_apart=loop,
+        y, args, st, _, n = iterate(warm, system, y, args, members_apart=loop, beacon=False,
                                     handoff=handoff)
         args = system.update(y, args)
         s = warm.stats(st)
         steps, evals, hvps = steps + n, evals + s["force_evals"], hvps + s["hvps"]
-    y, args, st, result, n = iterate(solver, system, y, args, members_apart=loop,
+    y, args, st, result, n = iterate(solver, system, y, args, members_apart=loop, beacon=False,
                                      handoff=handoff)
     s = solver.stats(st)
     res = relative_residual(system, y, args, st["F"] if "F" in st else None)
@@ -326,7 +326,7 @@ def _close_batch(materials, problem, base, x0, nbrs, pressures, *, solver, skin,
         # one member: the unbatched program of a single solve (no vmap, no selects)
         one = f(jax.tree_util.tree_map(lambda a: a[0], materials))
         return jax.tree_util.tree_map(lambda a: a[None], one)
-    # vectorised: the rebuild branches too run as one array program (`batching.branches`)
+    # vectorised: the rebuild branches too run as one array program (`vmap_control.branches`)
     with branches("members" if loop else "select"):
         return jax.vmap(functools.partial(f, loop=loop, handoff=0 if loop else handoff))(
             materials)

@@ -11,7 +11,7 @@ bending modulus
 and a leaflet under pressure P bends only on the length scale (D / P)^(1/3): for E = 1 MPa,
 H = 0.3 mm, nu = 0.45 this is 0.64 mm at P = 80 mmHg, below the mesh size (0.88 mm), but
 1.9 mm at 3 mmHg, so the physical bending stiffness gives creases a finite width and
-changes the low-pressure shape (h_E) by about a millimetre (docs/mechanics-and-solvers.md,
+changes the low-pressure shape (h_E) by about a millimetre (docs/mechanics.md,
 "Bending").  `Bending(scale)` adds ``scale`` times this physical D (scale = 0 switches it
 off at no cost; `None` in `Params` skips it entirely).
 

@@ -11,7 +11,11 @@ import sys
 
 import numpy as np
 
-__all__ = ["plot_valve", "plot_profiles", "plot_pair_heights", "profile_distance"]
+__all__ = ["plot_valve", "plot_aortic_view", "plot_profiles", "plot_pair_heights",
+           "profile_distance", "aortic_frame"]
+
+#: colour map of the gap (mm) inside the coaptation zone, 0 (touching) to g_c
+GAP_CMAP = "plasma"
 
 COLOURS = ("tab:blue", "tab:orange", "tab:green")
 # distinct styles, so that the (often identical) curves of a symmetric valve stay visible
@@ -50,16 +54,52 @@ def _status(result, load=1):
     return f"\nNOT CONVERGED: {r.describe()}"
 
 
+def _zone_faces(result):
+    """Per leaflet: (triangles in the coaptation zone (bool (m,)), their gap (m,) mm), at
+    the closing load; a triangle is in the zone when its three nodes are (gap < g_c)."""
+    from .report import nodal_gap
+    m = result.metrics
+    gap, _ = nodal_gap(m, np.asarray(result.x), result.valve.triangles)
+    out = []
+    for i in range(3):
+        _, tri = result.leaflet(i, "closed")
+        g = gap[result.valve.leaflet_slice(i)][tri]
+        out.append((np.all(g < m.g_c, axis=1), g.mean(axis=1)))
+    return out
+
+
+def _face_colours(base, zone, gap, g_c):
+    """RGBA (m, 4): the leaflet's colour, and the gap's colour (`GAP_CMAP`, 0..g_c) on the
+    zone's triangles."""
+    from matplotlib import colormaps, colors
+    fc = np.tile(colors.to_rgba(base, 0.9), (len(zone), 1))
+    fc[zone] = colormaps[GAP_CMAP](np.clip(gap[zone] / g_c, 0.0, 1.0))
+    return fc
+
+
+def _gap_colourbar(fig, ax, g_c):
+    from matplotlib import cm, colors
+    sm = cm.ScalarMappable(norm=colors.Normalize(0.0, g_c), cmap=GAP_CMAP)
+    cb = fig.colorbar(sm, ax=ax, shrink=0.6, pad=0.08)
+    cb.set_label(f"gap in the coaptation zone (mm; zone: gap < g_c = {g_c:g})")
+
+
 def plot_valve(result, ax=None, state="closed"):
     """The three leaflets in 3D (mm) in ``state`` ('closed', 'effective', 'placed' or
-    'template'), with the suturing paths in black."""
+    'template'), with the suturing paths in black; in the closed state each leaflet's
+    coaptation zone is coloured by its gap (colour bar)."""
     fig, ax = _axes(ax, projection="3d")
     allp = []
+    zones = _zone_faces(result) if state == "closed" else None
     for i in range(3):
         p, tri = result.leaflet(i, state)
-        ax.plot_trisurf(p[:, 0], p[:, 1], p[:, 2], triangles=tri, color=COLOURS[i],
-                        edgecolor=(0, 0, 0, 0.25), linewidth=0.2, alpha=0.9)
+        surf = ax.plot_trisurf(p[:, 0], p[:, 1], p[:, 2], triangles=tri, color=COLOURS[i],
+                               edgecolor=(0, 0, 0, 0.25), linewidth=0.2, alpha=0.9)
+        if zones is not None:
+            surf.set_facecolor(_face_colours(COLOURS[i], *zones[i], result.metrics.g_c))
         allp.append(p)
+    if zones is not None:
+        _gap_colourbar(fig, ax, result.metrics.g_c)
     if state != "template":
         for path in result.valve.root.paths:
             q = np.asarray(path)
@@ -74,6 +114,62 @@ def plot_valve(result, ax=None, state="closed"):
             "effective": f", P = {result.scene.he_pressure:g} mmHg"}.get(state, "")
     status = {"closed": _status(result, 1), "effective": _status(result, 0)}.get(state, "")
     ax.set_title(f"valve ({state}{load}){status}")
+    return fig
+
+
+def aortic_frame(root):
+    """(origin (3,), e1 (3,), e2 (3,)): the surgeon's view down the valve axis from the
+    aorta.  e1 points from the axis to commissure 0, e2 = e1 x axis; seen so, the
+    commissures, ordered counter-clockwise from the aorta, turn counter-clockwise."""
+    axis = np.asarray(root.axis, float)
+    origin = np.asarray(root.origin, float)
+    c0 = np.asarray(root.commissures[0], float) - origin
+    e1 = c0 - (c0 @ axis) * axis
+    e1 = e1 / np.linalg.norm(e1)
+    return origin, e1, np.cross(e1, axis)
+
+
+def plot_aortic_view(result, ax=None):
+    """The closed valve seen from the aorta down its axis (the surgeon's view, mm): each
+    leaflet in its colour with its coaptation zone coloured by gap, nearer surfaces drawn
+    over farther ones, the suturing paths in black, the commissures marked, and the
+    centre of the valve; the title gives h_c, or says that there is a central gap."""
+    from matplotlib.collections import PolyCollection
+
+    fig, ax = _axes(ax)
+    root, m = result.valve.root, result.metrics
+    origin, e1, e2 = aortic_frame(root)
+    axis = np.asarray(root.axis, float)
+    polys, colours, depth = [], [], []
+    for i, (zone, gap) in enumerate(_zone_faces(result)):
+        p, tri = result.leaflet(i, "closed")
+        q = p - origin
+        uv = np.stack([q @ e1, q @ e2], axis=-1)
+        polys.append(uv[tri])
+        colours.append(_face_colours(COLOURS[i], zone, gap, m.g_c))
+        depth.append((q @ axis)[tri].mean(axis=1))    # along the axis, away from the viewer
+    polys, colours, depth = (np.concatenate(v) for v in (polys, colours, depth))
+    order = np.argsort(-depth)                          # farthest first
+    ax.add_collection(PolyCollection(polys[order], facecolors=colours[order],
+                                     edgecolors=(0, 0, 0, 0.15), linewidths=0.2))
+    for path in root.paths:
+        q = np.asarray(path) - origin
+        ax.plot(q @ e1, q @ e2, color="k", linewidth=1.0)
+    for k, c in enumerate(np.asarray(root.commissures)):
+        q = c - origin
+        ax.plot(q @ e1, q @ e2, "k^", markersize=8)
+        ax.annotate(f"C{k}", (q @ e1, q @ e2), textcoords="offset points", xytext=(6, 6))
+    ax.plot(0.0, 0.0, "k+", markersize=12, label="valve axis")
+    ax.set_aspect("equal")
+    ax.autoscale_view()
+    ax.set_xlabel("towards commissure C0 (mm)")
+    ax.set_ylabel("perpendicular, in the annulus plane (mm)")
+    ax.legend(loc="lower right", fontsize="small")
+    _gap_colourbar(fig, ax, m.g_c)
+    centre = (f"central coaptation h_c = {m.h_c:.2f} mm" if m.h_c > 0
+              else "CENTRAL GAP: no point meets both other leaflets")
+    ax.set_title(f"seen from the aorta (P = {result.scene.pressure:g} mmHg): {centre}"
+                 f"{_status(result)}")
     return fig
 
 

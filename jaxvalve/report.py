@@ -96,7 +96,7 @@ def nodal_gap(metrics, x, triangles):
     as in `jaxvalve.coaptation.sharp.level_values`) are +inf there; they are clipped to
     that cutoff here, so a value equal to the cutoff means "at least this far".
     Returns (gap (N,), cutoff)."""
-    from .coaptation._valve import max_edge_length
+    from .coaptation.topology import max_edge_length
 
     cutoff = (metrics.g_c + max_edge_length(np.asarray(x), np.asarray(triangles))) \
         * (1 + 1e-9) + 1e-12
@@ -118,6 +118,10 @@ def leaflet_data(result, i):
         "zone": (gap[sl] < m.g_c).astype(np.uint8),
         "principal_stretches": nodal_average(lam, tri, len(pts), np.abs(signed_areas_np(tpl, tri))),
         "template": tpl,
+        # the solve's status on every node: meshio's VTU writer drops field data, and a
+        # viewer shows point data beside the state it describes
+        "converged": np.full(len(pts), int(result.converged), np.uint8),
+        "residual": np.full(len(pts), max(float(s.residual) for s in result.solves)),
     }
     return pts, tri, point_data, {"principal_stretches": lam}
 
@@ -128,8 +132,13 @@ def write_outputs(result, out_dir, figures: bool = True) -> list[Path]:
     (closed state, mm) with point data displacement (n, 3) = x - x_start, gap (n,) to the
     nearest other leaflet (clipped at the search cutoff, see `nodal_gap`), zone (n,) uint8
     = gap < g_c, principal_stretches (n, 2) (reference-area-weighted nodal mean, also per
-    triangle as cell data) and template (n, 2) coordinates; with ``figures`` also
-    ``valve.png``, ``profiles.png`` and ``pair_heights.png``.  Returns the paths."""
+    triangle as cell data), template (n, 2) coordinates, and the solve's status on every
+    node: converged (n,) uint8 (1 where every closure converged) and residual (n,) (the
+    worse relative residual of the closures, as in metrics.json); with ``figures`` also
+    ``valve.png`` (side view), ``valve_aortic_view.png`` (down the axis from the aorta),
+    ``profiles.png`` and ``pair_heights.png``, and ``report.html`` (`jaxvalve.html_report`:
+    one self-contained page, the valve in 3D, the metrics and the status).  Returns the
+    paths."""
     from .io import write_surface
 
     out = Path(out_dir)
@@ -145,7 +154,9 @@ def write_outputs(result, out_dir, figures: bool = True) -> list[Path]:
             paths.append(write_surface(out / f"leaflet_{i}.vtu", pts, tri, point_data=pd,
                                        cell_data=cd))
         if figures:
+            from .html_report import write_html_report
             paths.extend(_write_figures(result, out))
+            paths.append(write_html_report(result, out / "report.html"))
     except OSError as e:
         raise RootFileError(f"cannot write the outputs to '{out}': {e}") from None
     return paths
@@ -158,6 +169,7 @@ def _write_figures(result, out):
 
     written = []
     for name, fn, kw in (("valve", plots.plot_valve, {"projection": "3d"}),
+                         ("valve_aortic_view", plots.plot_aortic_view, {}),
                          ("profiles", plots.plot_profiles, {}),
                          ("pair_heights", plots.plot_pair_heights, {})):
         fig = Figure(figsize=(7, 6))

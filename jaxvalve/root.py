@@ -109,6 +109,7 @@ import numpy as np
 from scipy.optimize import brentq
 from scipy.spatial import cKDTree
 
+from .contact.geometry import point_triangle_distance_np
 from .errors import MeshError, ParameterError
 
 __all__ = [
@@ -420,30 +421,10 @@ def distance_to_surface(points, surface_points, triangles):
         qi.append(np.full(len(cand), n))
         ti.append(cand)
     qi, ti = np.concatenate(qi), np.concatenate(ti)
-    d = _point_triangle_distance(p[qi], V[T[ti, 0]], V[T[ti, 1]], V[T[ti, 2]])
+    d = point_triangle_distance_np(p[qi], V[T[ti, 0]], V[T[ti, 1]], V[T[ti, 2]])
     out = np.full(len(p), np.inf)
     np.minimum.at(out, qi, d)
     return out
-
-
-def _point_triangle_distance(p, a, b, c):
-    def seg(u, v):
-        uv = v - u
-        L2 = np.einsum("nd,nd->n", uv, uv)
-        t = np.clip(np.einsum("nd,nd->n", p - u, uv) / np.where(L2 > 0, L2, 1.0), 0.0, 1.0)
-        return np.linalg.norm(p - u - t[:, None] * uv, axis=1)
-
-    edge = np.minimum(np.minimum(seg(a, b), seg(b, c)), seg(c, a))
-    n = np.cross(b - a, c - a)
-    nn = np.einsum("nd,nd->n", n, n)
-    ok = nn > 0
-    nn_ = np.where(ok, nn, 1.0)
-    w = p - a
-    lc = np.einsum("nd,nd->n", np.cross(b - a, w), n) / nn_
-    lb = np.einsum("nd,nd->n", np.cross(w, c - a), n) / nn_
-    inside = ok & (lb >= 0) & (lc >= 0) & (lb + lc <= 1)
-    plane = np.abs(np.einsum("nd,nd->n", w, n)) / np.sqrt(nn_)
-    return np.where(inside, plane, edge)
 
 
 # ====================================================================== benchmark root

@@ -1,10 +1,10 @@
 """A simulation scene: root, template, mesh size, material, load, contact law and solver.
 
-`Scene()` is the benchmark valve (the paper's Table 1 setting; docs/benchmarks.md).  A
+`Scene()` is the benchmark valve (the paper's Table 1 setting; docs/benchmark-notes.md).  A
 scene is plain data; it can be read from TOML (`Scene.from_toml`) and every field can be
 overridden.
 
-Benchmark template (chosen from anatomy before any closure was run; docs/benchmarks.md):
+Benchmark template (chosen from anatomy before any closure was run; docs/benchmark-notes.md):
 free edge 2b = 30 mm (Labrosse et al. 2006, free-edge length 30 mm), arc radius r = 12 mm
 (the annulus radius, so the belly's arc matches the annulus), alpha = 160 degrees (the
 paper), and a = 7.1 mm, which makes the sutured edge 47.71 mm: the length of the benchmark
@@ -58,13 +58,13 @@ class Scene:
     pressure, he_pressure: the closing load and the effective-height load (mmHg).
     rtol: relative force residual ||F_free|| / ||F_pressure|| the closure must reach
     (default 1e-4: the coaptation metrics then agree with a 1e-6 solve to ~0.01 mm; see
-    docs/benchmarks.md, "Run time against error").
+    docs/benchmark-notes.md, "Run time against error").
     bending: plate bending stiffness as a multiple of the physical D = E H^3 / (12 (1 -
     nu^2)) (`jaxvalve.bending`); 0 gives the specified pure membrane.
     precision: the floating type of the solve, "float64" (default) or "float32" (states,
     parameters and forces; the metrics are always measured in float64).  float32 forces
     carry rounding near 1e-4 of ||F_pressure|| at 3 mmHg, so a float32 closure may stop
-    short of rtol = 1e-4 there (docs/benchmarks.md, "Run time against error").
+    short of rtol = 1e-4 there (docs/benchmark-notes.md, "Run time against error").
     fallback: where a closure on the smooth law fails (anything but a limit point), close
     the valve again on the barrier law by projected Newton (`jaxvalve.closure`,
     "Fallback"; float64 only).  The reports name the path that closed each load.

@@ -106,6 +106,10 @@ class SimulationResult:
         from .plots import plot_valve
         return plot_valve(self, ax=ax, **kw)
 
+    def plot_aortic_view(self, ax=None, **kw):
+        from .plots import plot_aortic_view
+        return plot_aortic_view(self, ax=ax, **kw)
+
     def plot_profiles(self, ax=None, **kw):
         from .plots import plot_profiles
         return plot_profiles(self, ax=ax, **kw)

@@ -102,6 +102,9 @@ def optimize_template(scene: Scene | None = None, objective: Objective | None = 
     reach; `OptimizationResult.check` and ``consistent`` report it.  scene None:
     `default_scene()` (the benchmark valve with rtol 1e-6, as ``jaxvalve optimize``); a
     given scene is used as it is, so pass rtol=1e-6 for gradients that match its CLI.
+    A start that does not close on the smooth law (FIRE) is closed on the barrier law
+    (projected Newton), and the whole run then uses that law, as `simulate`'s fallback
+    does (``scene.fallback``; not with a given evaluator); the trajectory's scene says so.
     """
     from jaxvalve.simulation import compile_timer
 
@@ -143,8 +146,13 @@ def optimize_template(scene: Scene | None = None, objective: Objective | None = 
             same = lambda c: {**c, "options": {k: v for k, v in c["options"].items()  # noqa
                                                if k != "max_iter"}}
             if same(json.loads(json.dumps(config))) != same(saved["trajectory"]["config"]):
-                raise ParameterError(f"cannot resume {str(out)!r}: its scene, objective or "
-                                     "options differ from this run's")
+                alt = _barrier_scene(scene)     # a run that fell back to the barrier law
+                alt_config = _config(alt, objective, optimizer, options)
+                if alt is None or (same(json.loads(json.dumps(alt_config)))
+                                   != same(saved["trajectory"]["config"])):
+                    raise ParameterError(f"cannot resume {str(out)!r}: its scene, objective "
+                                         "or options differ from this run's")
+                scene, config = alt, alt_config
             ck = saved["checkpoint"]
             records = saved["trajectory"]["records"]
             evaluator = _evaluator(evaluator, scene, objective, eps, ck["mesh_at"],
@@ -163,9 +171,22 @@ def optimize_template(scene: Scene | None = None, objective: Objective | None = 
                                    float(ck["seconds"]), record=records[-1])
             say(f"resumed at iteration {state.iteration}: objective {state.value:.6g}")
         else:
+            given = evaluator
             evaluator = _evaluator(evaluator, scene, objective, eps, None, warm_start)
             try:
-                state = loop.init(evaluator, opt, adjoint=adjoint)
+                try:
+                    state = loop.init(evaluator, opt, adjoint=adjoint)
+                except ConvergenceError as e:
+                    alt = _barrier_scene(scene)
+                    if alt is None or given is not None:
+                        raise
+                    # the fallback of `simulate`, for the whole run: one contact law for
+                    # every closure and gradient of the run
+                    say(f"the start did not close on the smooth contact law ({e}); the "
+                        "whole run uses the barrier law (solver newton, contact barrier)")
+                    scene, config = alt, _config(alt, objective, optimizer, options)
+                    evaluator = _evaluator(None, scene, objective, eps, None, warm_start)
+                    state = loop.init(evaluator, opt, adjoint=adjoint)
             except ConvergenceError as e:                 # reported in the run directory
                 if out is not None:
                     write_trajectory(out, config, [], dict(done=True, failed=True,
@@ -209,6 +230,14 @@ def optimize_template(scene: Scene | None = None, objective: Objective | None = 
     return OptimizationResult(np.asarray(state.rab), state.value, records, reason, failed,
                               state.counts, seconds, ct.seconds, state.evaluation, files,
                               check)
+
+
+def _barrier_scene(scene):
+    """The scene on the barrier law (projected Newton), where ``scene`` is on FIRE and the
+    smooth law with its fallback on (`Scene.fallback`); else None."""
+    if (scene.solver, scene.contact) == ("fire", "smooth") and scene.fallback:
+        return scene.replace(solver="newton", contact="barrier")
+    return None
 
 
 def _baked(objective):

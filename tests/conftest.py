@@ -42,6 +42,26 @@ import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 
+
+def _load_stress_suite():
+    """`benchmarks/stress_suite.py`, the stress suite's harness (a benchmark, not part of
+    the library), as the module ``stress_suite``: `tests/stress/` runs a small part of the
+    suite, and a few closure tests use its hard starts and its ipctk check.  Loaded by
+    path: the benchmarks folder is not put on sys.path, where its scripts (optimize.py,
+    batch.py, ...) would shadow the packages of the same names."""
+    import importlib.util
+    import pathlib
+    import sys
+
+    path = pathlib.Path(__file__).resolve().parents[1] / "benchmarks" / "stress_suite.py"
+    spec = importlib.util.spec_from_file_location("stress_suite", path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["stress_suite"] = module
+    spec.loader.exec_module(module)
+
+
+_load_stress_suite()
+
 #: Test files by their measured time in `.ci/run` (seconds of one xdist worker, session
 #: 17, `--durations`), longest first.  With `--dist loadfile` the workers take whole files
 #: from a queue; xdist's default queue puts the files with the most tests first, which left
@@ -69,7 +89,7 @@ LONGEST_FIRST = (
 def pytest_collection_modifyitems(session, config, items):
     """Order the files longest first (`LONGEST_FIRST`); the order inside a file is kept.
     Every test of a `LONGEST_FIRST` file is marked ``slow``: ``pytest -m "not slow"`` is
-    the fast tier for development (docs/testing-and-platform.md); the CI runs all."""
+    the fast tier for development (docs/development.md); the CI runs all."""
     rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
     items.sort(key=lambda it: rank.get(it.nodeid.split("::")[0], len(rank)))
     for it in items:

@@ -12,7 +12,7 @@ from jaxvalve.errors import ParameterError
 from jaxvalve.simulation import build_scene_valve, measure
 from jaxvalve.solvers import RESULTS, BarrierNewton, solve_barrier
 from jaxvalve.solvers.barrier_newton import _Model
-from jaxvalve.stress import ipctk_intersects
+from stress_suite import ipctk_intersects
 from jaxvalve.valve import leaflet_crossings
 
 #: the benchmark valve at a coarse mesh (3 x 457 triangles); at h = 2-2.5 mm the solve

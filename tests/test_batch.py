@@ -277,7 +277,7 @@ def test_sweep_writes_csv_and_heat_map_and_exits_3_when_a_member_fails(runs, tmp
 
 def test_vectorised_batch_agrees_with_sequential_and_one_member_is_a_single_solve(runs):
     """The GPU default path on this CPU.  vectorize=True runs the members' steps, and their
-    pair-list rebuilds (`batching.branches("select")`), as one array program: members then
+    pair-list rebuilds (`vmap_control.branches("select")`), as one array program: members then
     differ from sequential runs by rounding, amplified along FIRE's path, but each is an
     equilibrium to rtol (the member that finishes last takes its last steps alone, by the
     default hand-off).  A batch of one runs the unbatched single-solve program."""

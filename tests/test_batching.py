@@ -1,10 +1,10 @@
-"""`jaxvalve.batching`: control flow under vmap, exact per member, by both branch policies."""
+"""`jaxvalve.vmap_control`: control flow under vmap, exact per member, by both branch policies."""
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxvalve.batching import batch_any, batch_max, branches, cond_each
+from jaxvalve.vmap_control import batch_any, batch_max, branches, cond_each
 
 
 def _true(x, k):
@@ -90,9 +90,11 @@ def _contract(y0, k, handoff):
     from types import SimpleNamespace
 
     from jaxvalve.solvers.base import iterate
-    system = SimpleNamespace(update=lambda y, args: args)
+    system = SimpleNamespace(update=lambda y, args: args,
+                             scale=lambda y, args: jnp.asarray(1.0, y.dtype))
     args = {"k": k, "nbrs": jnp.zeros(()), "f0": jnp.asarray(-1.0)}
-    y, _, state, result, n = iterate(_Contract(), system, y0, args, handoff=handoff)
+    y, _, state, result, n = iterate(_Contract(), system, y0, args, handoff=handoff,
+                                     beacon=False)     # vectorised steps: as jaxvalve.batch
     return y, n, result, state["vec"]
 
 
@@ -101,9 +103,19 @@ def test_vectorised_loop_hands_the_last_members_over_to_the_member_loop(handoff)
     """iterate(handoff=h) under vmap: the steps run vectorised while more than h members
     are running, then member by member (a straggler's last steps are its own); every member
     ends exactly as when solved alone."""
+    from jaxvalve import progress
     y0 = jnp.array([[1.0, 2.0], [0.5, -1.0], [3.0, 0.1]])
     k = jnp.array([0.5, 0.2, 0.05])                   # 22, 66 and 290 steps
+    before = progress.latest()
     y, n, result, vec = jax.jit(jax.vmap(lambda y, k: _contract(y, k, handoff)))(y0, k)
+    jax.effects_barrier()
+    after = progress.latest()
+    # each member handed over to its own loop reports its end (`progress.member_done`),
+    # and its steps there (a beacon every BEACON_EVERY = 100 steps: the slowest member,
+    # 290 steps, passes steps 100 and 200 in its own loop whenever there is a hand-off);
+    # the vectorised steps report nothing
+    assert after["members"] - before["members"] == min(handoff, 3)
+    assert after["serial"] - before["serial"] == (2 if handoff else 0)
     for i in range(3):
         yi, ni, ri, vi = jax.jit(lambda y, k: _contract(y, k, 0))(y0[i], k[i])
         np.testing.assert_array_equal(y[i], yi)

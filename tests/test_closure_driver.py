@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from jaxvalve import Scene, closure, simulate, simulate_batch
-from jaxvalve import stress as S
+import stress_suite as S
 from jaxvalve import valve as V
 from jaxvalve.simulation import build_scene_valve
 from jaxvalve.solvers import RESULTS, Stats

@@ -357,7 +357,7 @@ def _scalars(x, plan, eps):
 def _sharp_values(res, plan, cfg):
     """Sharp references: h is the max of the sharp H over the plan's grid."""
     from jaxvalve.coaptation.sharp import level_values, pair_height_curves
-    from jaxvalve.coaptation._valve import topology
+    from jaxvalve.coaptation.topology import topology
     x, t, b, _, f = cfg
     topo = topology(t, b, f, len(x))
     phi, _ = level_values(x, topo, G_C)
@@ -514,7 +514,7 @@ def test_central_candidates_drop_coinciding_level_lines(sharp):
     # disjoint), so there is no interior intersection point.  cv = fx x fy is then only
     # rounding error, and cv / sum(cv) once gave weights up to 0.89 and derivatives
     # ~1e18-1e20 (compiled code contracts a*b - c*d into FMAs, so even fx x fx != 0).
-    from jaxvalve.coaptation._central import central_candidates
+    from jaxvalve.coaptation.central_zone import central_candidates
 
     rng = np.random.default_rng(1)
     T = 64

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 import jax.numpy as jnp
 
-from jaxvalve import analytic, meshgen
+import analytic
+from jaxvalve import meshgen
 from jaxvalve.continuation import Ramp, ramp
 from jaxvalve.equilibrium import solve
 from jaxvalve.errors import ParameterError

@@ -64,7 +64,7 @@ def test_notebook01_models_agree_within_paper_spread(nb01):
 
 
 def test_notebook01_figures(nb01):
-    for name in ("fig_valve", "fig_profiles", "fig_heights"):
+    for name in ("fig_valve", "fig_aorta", "fig_profiles", "fig_heights"):
         fig = nb01[name]
         assert len(fig.axes) >= 1
         assert np.all(np.isfinite(fig.get_size_inches()))
@@ -138,3 +138,20 @@ def test_notebook02_stiffness_sensitivity(nb02):
         if abs(secant) > 1e-2:
             assert np.sign(sens[k]["E"]) == np.sign(secant), (k, sens[k]["E"], secant)
     assert res.evaluation.metrics["h"] == pytest.approx(nb02["after"].summary()["h"], abs=0.5)
+
+
+@pytest.mark.parametrize("name", ["01_benchmark_closure.ipynb", "02_optimisation.ipynb"])
+def test_committed_notebooks_carry_their_outputs(name):
+    """`notebooks/execute.py` wrote the outputs: every code cell ran, in order, once,
+    without an error, and the figures are embedded as PNG (readable without running)."""
+    nb = json.loads((NOTEBOOKS / name).read_text())
+    code = [c for c in nb["cells"] if c["cell_type"] == "code"]
+    assert [c["execution_count"] for c in code] == list(range(1, len(code) + 1))
+    outputs = [o for c in code for o in c["outputs"]]
+    assert not [o for o in outputs if o["output_type"] == "error"]
+    pngs = [o for o in outputs if "image/png" in o.get("data", {})]
+    figure_cells = [c for c in code if "plot_" in "".join(c["source"])
+                    or "figure(" in "".join(c["source"])]
+    assert figure_cells and len(pngs) >= len(figure_cells)
+    text = "".join("".join(o.get("text", "")) for o in outputs)
+    assert "jaxvalve" in text and "Traceback" not in text

@@ -294,3 +294,38 @@ def test_the_evaluator_closes_on_the_barrier_path_from_a_swing_shut():
     e = Evaluator(sc, Objective(targets=(Target("h", value=8.0),))).forward(BASE)
     assert e.converged and all(s["converged"] for s in e.solves)
     assert np.isfinite(e.value)
+
+
+def test_a_start_that_does_not_close_on_the_smooth_law_runs_on_the_barrier_law(monkeypatch):
+    """optimize_template's fallback: where the start does not close on FIRE and the smooth
+    law, a fresh evaluator on the barrier law (projected Newton) runs the whole run, and
+    the run says so; with ``fallback=False`` (or a given evaluator) the error stands.
+    The closures are stubbed: the control flow is what is tested here (the barrier
+    evaluator itself: `test_the_evaluator_closes_on_the_barrier_path_from_a_swing_shut`)."""
+    import optimize.run as R
+    from jaxvalve.errors import ConvergenceError
+
+    made = []
+
+    class Stub:
+        def __init__(self, scene, objective, eps=0.1, mesh_at=None, warm_start=True):
+            self.scene = scene
+            made.append((scene.solver, scene.contact))
+
+    def init(ev, opt, adjoint="lu"):
+        if ev.scene.contact == "smooth":
+            raise ConvergenceError("the start did not close: closure at 80 mmHg: "
+                                   "leaflets_cross, residual 9.87e-07, 981 steps")
+        raise RuntimeError("the barrier run has started")
+
+    monkeypatch.setattr(R, "Evaluator", Stub)
+    monkeypatch.setattr(R.loop, "init", init)
+    said = []
+    with pytest.raises(RuntimeError, match="the barrier run has started"):
+        R.optimize_template(Scene(h=3.0), progress=said.append)
+    assert made == [("fire", "smooth"), ("newton", "barrier")]
+    assert "leaflets_cross" in said[-1] and "barrier law" in said[-1]
+    made.clear()
+    with pytest.raises(ConvergenceError, match="leaflets_cross"):
+        R.optimize_template(Scene(h=3.0, fallback=False))
+    assert made == [("fire", "smooth")]

@@ -182,15 +182,21 @@ def test_distance_to_surface_matches_brute_force():
     r = benchmark_root(60.0, wall_theta_cells=24, wall_dz=4.0)
     V, T = r.wall
     q = rng.uniform([-20, -20, -3], [20, 20, 32], size=(40, 3))
-    from jaxvalve.root import _point_triangle_distance
-    brute = np.array([_point_triangle_distance(np.repeat(p[None], len(T), 0), V[T[:, 0]],
-                                               V[T[:, 1]], V[T[:, 2]]).min() for p in q])
+    from jaxvalve.contact.geometry import point_triangle_distance_np as ptd
+    brute = np.array([ptd(np.repeat(p[None], len(T), 0), V[T[:, 0]],
+                          V[T[:, 1]], V[T[:, 2]]).min() for p in q])
     np.testing.assert_allclose(distance_to_surface(q, V, T), brute, rtol=1e-12)
     # and the closest-point routine itself on a unit triangle
     a, b, c = np.eye(3)[None, 0] * 0, np.eye(3)[None, 0], np.eye(3)[None, 1]
     for p, d in [((0.2, 0.2, 0.5), 0.5), ((2.0, 0.0, 0.0), 1.0), ((-1, -1, 0), np.sqrt(2)),
                  ((1, 1, 0), np.sqrt(0.5))]:
-        assert _point_triangle_distance(np.array([p], float), a, b, c)[0] == pytest.approx(d)
+        assert ptd(np.array([p], float), a, b, c)[0] == pytest.approx(d)
+    # a degenerate triangle (a segment, a point: a wall mesh may hold them) is measured
+    # by its edges, never NaN
+    s, e, m = np.array([[0.0, 0, 0]]), np.array([[2.0, 0, 0]]), np.array([[1.0, 0, 0]])
+    assert ptd(np.array([[1.0, 1.0, 0.0]]), s, e, m)[0] == pytest.approx(1.0)
+    assert ptd(np.array([[3.0, 1.0, 0.0]]), s, e, m)[0] == pytest.approx(np.sqrt(2.0))
+    assert ptd(np.array([[3.0, 4.0, 0.0]]), s, s, s)[0] == pytest.approx(5.0)
 
 
 # ----------------------------------------------------------------------- resampling

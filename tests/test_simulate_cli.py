@@ -54,11 +54,15 @@ def test_unconverged_run_exits_3_with_a_warning_and_still_writes(run):
     assert code == 3
     assert "did NOT converge" in stderr and "residual" in stderr
     assert "[jaxvalve] closing at 80 mmHg" in stdout
+    # the heartbeat spoke while the run compiled (several seconds without a line)
+    beats = [ln for ln in stdout.splitlines() if ln.startswith("[jaxvalve] ... ")]
+    assert beats and all(" s in: " in ln for ln in beats)
     for key in ("h_E", "h_C-C", "h_avr", "NCCA", "compile time", "residual"):
         assert key in stdout
     names = {p.name for p in out.iterdir()}
     assert names == {"metrics.json", "leaflet_0.vtu", "leaflet_1.vtu", "leaflet_2.vtu",
-                     "valve.png", "profiles.png", "pair_heights.png"}
+                     "valve.png", "valve_aortic_view.png", "profiles.png",
+                     "pair_heights.png", "report.html"}
 
 
 def test_toml_scene_and_flag_override_are_honoured(run):
@@ -151,6 +155,12 @@ def test_leaflet_vtu_files_hold_the_closed_state_and_its_fields(run):
         lam = pd["principal_stretches"]
         assert np.all(lam[:, 0] >= lam[:, 1] - 1e-12) and np.all(lam > 0)
         np.testing.assert_allclose(pd["template"][:, :2], lm.points)
+        # the solve's status travels with the state (this run stopped at its step cap)
+        assert pd["converged"].dtype == np.uint8
+        np.testing.assert_array_equal(pd["converged"], np.zeros(n, np.uint8))
+        np.testing.assert_array_equal(
+            pd["residual"], np.full(n, json.loads((out / "metrics.json").read_text())["residual"]))
+        assert pd["residual"][0] > result.scene.rtol
     assert zones > 0          # the coarse closure already touches
 
 
@@ -182,9 +192,66 @@ def test_principal_stretches_are_one_in_the_template_state(run):
 
 def test_png_figures_are_written(run):
     _, _, out, _, _ = run
-    for name in ("valve", "profiles", "pair_heights"):
+    for name in ("valve", "valve_aortic_view", "profiles", "pair_heights"):
         data = (out / f"{name}.png").read_bytes()
         assert data[:8] == PNG and len(data) > 5000
+
+
+def test_aortic_view_looks_down_the_axis_with_the_zone_coloured_by_gap(run):
+    """The surgeon's view: the frame is orthonormal and perpendicular to the axis, the
+    commissures (counter-clockwise seen from the aorta) turn counter-clockwise on the
+    figure, every triangle is drawn once, nearer ones later, and exactly the zone's
+    triangles take the gap colours."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.collections import PolyCollection
+
+    import dataclasses
+    from types import SimpleNamespace
+
+    from jaxvalve.plots import _zone_faces, aortic_frame
+    _, result, _, _, _ = run
+    # this short run is still open: give the nodes nearest the aorta a gap below g_c, so
+    # that the figure has a zone to colour (the gap 0.1-0.4 mm, the others far apart)
+    x = np.asarray(result.x)
+    lift = -(x - np.asarray(result.valve.root.origin)) @ np.asarray(result.valve.root.axis)
+    g_c = result.metrics.g_c
+    near = lift > np.quantile(lift, 0.7)
+    gap = np.where(near, 0.1 + 0.3 * np.linspace(0, 1, len(x)), np.inf)[:, None]
+    result = dataclasses.replace(result, metrics=SimpleNamespace(gap=gap, g_c=g_c, h_c=0.0))
+    root = result.valve.root
+    origin, e1, e2 = aortic_frame(root)
+    axis = np.asarray(root.axis)
+    np.testing.assert_allclose([e1 @ e1, e2 @ e2, e1 @ e2, e1 @ axis, e2 @ axis],
+                               [1, 1, 0, 0, 0], atol=1e-12)
+    uv = [((c - origin) @ e1, (c - origin) @ e2) for c in np.asarray(root.commissures)]
+    ang = np.unwrap([np.arctan2(v, u) for u, v in uv])
+    assert np.all(np.diff(ang) > 0) and abs(ang[0]) < 1e-12        # C0 on the +u axis
+    try:
+        fig = result.plot_aortic_view()
+        ax = fig.axes[0]
+        (polys,) = [c for c in ax.collections if isinstance(c, PolyCollection)]
+        m = len(result.valve.leaflet.triangles)
+        assert len(polys.get_paths()) == 3 * m
+        zones = _zone_faces(result)
+        n_zone = sum(int(z.sum()) for z, _ in zones)
+        assert n_zone > 0
+        fc = polys.get_facecolor()
+        base = {tuple(np.round(matplotlib.colors.to_rgba(c, 0.9), 6))
+                for c in ("tab:blue", "tab:orange", "tab:green")}
+        coloured = sum(tuple(np.round(f, 6)) not in base for f in fc)
+        assert coloured == n_zone
+        # the faces are in painter's order: the last one drawn is one of the nearest to
+        # the aorta (the three leaflets tie)
+        xs = np.asarray(result.x)[result.valve.triangles] - origin
+        depth = (xs @ axis).mean(axis=1)
+        last = np.sort(polys.get_paths()[-1].vertices[:3] @ [1.0, 0.0])
+        nearest = np.flatnonzero(depth < depth.min() + 1e-9)
+        assert any(np.allclose(np.sort(xs[k] @ e1), last, atol=1e-9) for k in nearest)
+        assert "NOT CONVERGED" in ax.get_title()
+    finally:
+        plt.close("all")
 
 
 def test_plot_helpers_return_figures(run):
@@ -194,7 +261,7 @@ def test_plot_helpers_return_figures(run):
     _, result, _, _, _ = run
     try:
         for fig in (result.plot_valve(), result.plot_profiles(), result.plot_pair_heights(),
-                    result.plot_valve(state="effective")):
+                    result.plot_valve(state="effective"), result.plot_aortic_view()):
             assert fig.axes and fig.axes[0].get_xlabel().endswith("(mm)")
     finally:
         plt.close("all")

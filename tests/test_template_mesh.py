@@ -57,7 +57,7 @@ def test_impossible_templates_are_rejected_with_the_bound(field, kw, match):
 
 
 def test_paper_fig3_templates_violate_the_design_validity_rule():
-    """Documented discrepancy (docs/benchmarks.md): under the template geometry 2b < |AD|
+    """Documented discrepancy (docs/benchmark-notes.md): under the template geometry 2b < |AD|
     for all three."""
     for kw in PAPER_TEMPLATES.values():
         with pytest.raises(ParameterError, match="b must exceed"):

@@ -1,5 +1,5 @@
 """Validation against classical membrane problems with published answers, with mesh-convergence
-rates.  Reference solutions live in `jaxvalve.analytic`.
+rates.  Reference solutions live in `tests/analytic.py`.
 
 1. Clamped circular membrane under uniform pressure (Foppl-Hencky problem; Hencky 1915,
    corrected by Chien 1948).  Stress-free flat disk, radius a, fixed edge, St.Venant-Kirchhoff
@@ -34,7 +34,8 @@ import numpy as np
 import pytest
 import jax.numpy as jnp
 
-from jaxvalve import analytic, meshgen
+import analytic
+from jaxvalve import meshgen
 from jaxvalve.equilibrium import solve
 from jaxvalve.materials import Gent, NeoHookean, StVenantKirchhoff
 from jaxvalve.problem import Params, make_problem

@@ -55,7 +55,7 @@ def test_state_check_rejects_crossed_leaflets_and_folded_triangles(closed):
     the closed valve and catches leaflets pushed 1.5 mm through one another, a leaflet
     node pulled through its neighbours (a fold) and a NaN."""
     from jaxvalve.solvers import RESULTS
-    from jaxvalve.stress import penetrated_start
+    from stress_suite import penetrated_start
     v = closed.valve
     assert V.state_failure(v, closed.x) is None and V.state_failure(v, closed.x_he) is None
     assert V.state_failure(v, penetrated_start(v, closed.x, 1.5)) == "leaflets_cross"

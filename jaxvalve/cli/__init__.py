@@ -33,13 +33,19 @@ def enable_compilation_cache():
     return path
 
 
-def main(argv=None) -> int:
+def build_parser() -> argparse.ArgumentParser:
+    """The `jaxvalve` command line: one subparser per module of `SUBCOMMANDS`."""
     parser = argparse.ArgumentParser(
         prog="jaxvalve",
         description="Differentiable membrane mechanics for aortic valve closure (JAX).")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name, mod in SUBCOMMANDS.items():
+    for mod in SUBCOMMANDS.values():
         mod.add_parser(sub)
+    return parser
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
     args = parser.parse_args(argv)
     if args.command is None:
         parser.print_help()

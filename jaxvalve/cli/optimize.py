@@ -111,6 +111,7 @@ def run(args) -> int:
 
     from optimize.run import OPTIMIZE_MAX_STEPS, OPTIMIZE_RTOL
     from ..io import check_out_dir
+    from ..progress import Heartbeat
     scene = make_scene(args)
     check_out_dir(args.out)                 # before any closure: a bad --out loses nothing
     if args.rtol is None:
@@ -120,12 +121,13 @@ def run(args) -> int:
     objective = make_objective(args)
     say("targets: " + "; ".join(t.describe() for t in objective.targets)
         + f"; size weight {objective.size_weight:g}")
-    res = optimize_template(scene, objective, optimizer=args.optimizer,
-                            max_iter=args.max_iter, max_step=args.max_step,
-                            gtol=args.gtol, ftol=args.ftol, out=args.out,
-                            resume=args.resume, figures=not args.no_figures,
-                            warm_start=not args.cold_closures, verify=not args.no_check,
-                            progress=say)
+    with Heartbeat(say) as hb:              # a line at least every 2 s
+        res = optimize_template(scene, objective, optimizer=args.optimizer,
+                                max_iter=args.max_iter, max_step=args.max_step,
+                                gtol=args.gtol, ftol=args.ftol, out=args.out,
+                                resume=args.resume, figures=not args.no_figures,
+                                warm_start=not args.cold_closures, verify=not args.no_check,
+                                progress=hb.say)
     t = res.template
     print(f"  final template: r = {t['r']:.3f} mm, a = {t['a']:.3f} mm, b = {t['b']:.3f} mm")
     print(f"  objective {res.value:.6g} after {res.records[-1]['iteration']} iterations, "

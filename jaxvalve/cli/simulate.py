@@ -152,6 +152,7 @@ def run(args) -> int:
     from ..report import metrics_json, write_outputs
     from ..simulation import simulate
     from ..io import check_out_dir
+    from ..progress import Heartbeat
 
     stream = sys.stderr if args.json else sys.stdout
 
@@ -160,10 +161,12 @@ def run(args) -> int:
 
     scene = make_scene(args)
     check_out_dir(args.out)                 # before the solve: a bad --out loses nothing
-    result = simulate(scene, progress=say, throw=False)
-    written = []
-    if args.out is not None:
-        written = write_outputs(result, args.out, figures=not args.no_figures)
+    with Heartbeat(say) as hb:              # a line at least every 2 s
+        result = simulate(scene, progress=hb.say, throw=False)
+        written = []
+        if args.out is not None:
+            hb.say(f"writing the outputs to {args.out}")
+            written = write_outputs(result, args.out, figures=not args.no_figures)
     if args.json:
         print(json.dumps(metrics_json(result), indent=1, allow_nan=False))
     else:

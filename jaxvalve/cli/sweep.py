@@ -247,13 +247,40 @@ def _fmt(v):
 
 
 # ------------------------------------------------------------------------------ run
-def run(args) -> int:
+def _run_groups(args, scene, groups, total, hb):
+    """Close every member of every (model, members) group; the CSV rows, in order."""
     from ..batch import simulate_batch
-    from ..errors import JaxvalveError
     from ..leaflet_mesh import mesh_leaflet
-    from ..scene import Scene
     from .. import valve as V
+
+    say = hb.say
+    say(f"table {args.table}: {total} members in {len(groups)} batch"
+        f"{'es' * (len(groups) != 1)}, h = {args.h} mm")
+    say("building the valve (benchmark root and template)")
+    valve = V.build_valve(scene.load_root(), mesh_leaflet(scene.template(), args.h))
+    say(f"  3 x {len(valve.leaflet.triangles)} triangles")
+    rows, done = [], 0
+    hb.count(0, total)
+    for model, members in groups:
+        res = simulate_batch(scene.replace(model=model), [m for _, m in members],
+                             valve=valve, throw=False, progress=lambda m: say("  " + m))
+        for (labels, _), row in zip(members, res.rows()):
+            row = {"table": args.table, **labels, **row}
+            row["member"] = len(rows)
+            row.update(_paper(args.table, model, labels))
+            rows.append(row)
+        done += len(members)
+        hb.count(done, total)
+        say(f"{_bar(done, total)}  ({model}: {res.timings['solve']:.1f} s solve, "
+            f"{res.timings['compile']:.1f} s compile)")
+    return rows
+
+
+def run(args) -> int:
+    from ..errors import JaxvalveError
+    from ..scene import Scene
     from ..io import check_out_dir
+    from ..progress import Heartbeat
 
     def say(msg):
         print(f"[jaxvalve sweep] {msg}", file=sys.stderr, flush=True)
@@ -267,23 +294,8 @@ def run(args) -> int:
                   fallback=args.fallback)
     out = check_out_dir(args.out)           # before the solves: a bad --out loses nothing
     total = sum(len(m) for _, m in groups)
-    say(f"table {args.table}: {total} members in {len(groups)} batch"
-        f"{'es' * (len(groups) != 1)}, h = {args.h} mm")
-    say("building the valve (benchmark root and template)")
-    valve = V.build_valve(scene.load_root(), mesh_leaflet(scene.template(), args.h))
-    say(f"  3 x {len(valve.leaflet.triangles)} triangles")
-    rows, done = [], 0
-    for model, members in groups:
-        res = simulate_batch(scene.replace(model=model), [m for _, m in members],
-                             valve=valve, throw=False, progress=lambda m: say("  " + m))
-        for (labels, _), row in zip(members, res.rows()):
-            row = {"table": args.table, **labels, **row}
-            row["member"] = len(rows)
-            row.update(_paper(args.table, model, labels))
-            rows.append(row)
-        done += len(members)
-        say(f"{_bar(done, total)}  ({model}: {res.timings['solve']:.1f} s solve, "
-            f"{res.timings['compile']:.1f} s compile)")
+    with Heartbeat(say, unit="members") as hb:   # a line at least every 2 s
+        rows = _run_groups(args, scene, groups, total, hb)
     written = []
     if out is not None:
         try:

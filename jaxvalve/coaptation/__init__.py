@@ -39,9 +39,9 @@ CDF), integrated exactly over each triangle / chord with the linearly interpolat
 max / min become log-sum-exp.  H_ij is a sum of chord lengths over triangles (equal to the
 sharp union when the projection is one-to-one); h is a log-sum-exp over pairs and the
 plan's w grid; h_c / h_E use weighted soft extremes of the central candidates
-(`_central`).  Every smooth metric tends to the sharp one as eps, T -> 0.
+(`central_zone`).  Every smooth metric tends to the sharp one as eps, T -> 0.
 """
-from ._valve import annulus_level
+from .topology import annulus_level
 from .gaps import candidate_pairs, gap_field
 from .sharp import CoaptationResult, PairCurves, coaptation_metrics
 from .smooth import (SmoothPlan, plan_valid, smooth_gap_field, smooth_h, smooth_h_avr,

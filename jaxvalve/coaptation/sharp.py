@@ -15,9 +15,9 @@ import math
 import numpy as np
 
 from ..errors import MeshError
-from ._central import central_candidates, central_index, free_edge_closest
-from ._ops import chords, seg_fraction, tri_fraction, tri_moments
-from ._valve import (check_frame, check_positive, check_x, max_edge_length, perp_basis,
+from .central_zone import central_candidates, central_index, free_edge_closest
+from .level_sets import chords, seg_fraction, tri_fraction, tri_moments
+from .topology import (check_frame, check_positive, check_x, max_edge_length, perp_basis,
                      topology)
 from .gaps import gap_field
 
@@ -264,7 +264,7 @@ def _pair_heights(x, topo, phi, axis, origin, w, n_w, at, exact_max):
 
 def pair_height_curves(x, topo, phi, axis, origin, w=None, n_w=201):
     """`PairCurves` (mm) on the grid w (default n_w points on [0, max zone w]); phi from
-    `level_values`, topo from `_valve.topology`, axis unit (3,), origin (3,)."""
+    `level_values`, topo from `topology.topology`, axis unit (3,), origin (3,)."""
     return _pair_heights(x, topo, phi, axis, origin, w, n_w, [], False)[0]
 
 

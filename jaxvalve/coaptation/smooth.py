@@ -13,7 +13,7 @@ Smoothing (eps, T in mm; T defaults to eps):
   +eps), integrated exactly over each triangle (areas, mid-plane moments) or chord (H);
 * max / min: log-sum-exp with temperature T; h over the plan's w grid and the pairs;
   the extremes of the central zone are weighted soft maxima over its candidate points
-  (`_central`), normalised by the total weight W so they lie within the candidates' range.
+  (`central_zone`), normalised by the total weight W so they lie within the candidates' range.
 
 Sharp limit (eps, T -> 0): zone areas, NCCA, h_avr, H_ij(w) and h_cc tend to the sharp
 values (O(eps^2) for areas where the level set is regular); h tends to the maximum of the
@@ -40,9 +40,9 @@ import jax.numpy as jnp
 
 from ..contact.geometry import point_triangle_distance
 from ..errors import ParameterError
-from ._central import central_candidates, central_index, free_edge_closest
-from ._ops import chords, seg_fraction, tri_fraction, tri_moments
-from ._valve import (check_frame, check_positive, check_x, max_edge_length, perp_basis,
+from .central_zone import central_candidates, central_index, free_edge_closest
+from .level_sets import chords, seg_fraction, tri_fraction, tri_moments
+from .topology import (check_frame, check_positive, check_x, max_edge_length, perp_basis,
                      topology)
 from .gaps import candidate_pairs
 
@@ -65,7 +65,7 @@ class SmoothPlan:
     x0 (N, 3) build positions (mm); tri (M, 3) with leaflet tbody (M,).  Directed zones
     d = 0..2P-1 ((i, j) then (j, i) for each pair): triangles dz_tri (Z, 3) of the first
     leaflet, the other leaflet dz_col (Z,) and the zone id dz_id (Z,).  central: flat
-    candidate index arrays of the three-leaflet zone (`_central.central_index`).  free
+    candidate index arrays of the three-leaflet zone (`central_zone.central_index`).  free
     (F, 2) free-edge segments of leaflet free_leaf (F,).  Candidate rows cand_node,
     cand_tri, cand_slot (= node * L + leaflet of the triangle; padding slot N * L).  w (K,)
     grid of the pair curves; axis, origin, basis (2, 3) of the plane normal to the axis;

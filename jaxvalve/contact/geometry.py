@@ -266,33 +266,29 @@ def signed_plane_distance(p, a, b, c):
     return jnp.sum((p - a) * triangle_normal(a, b, c), axis=-1)
 # ----------------------------------------------------------------- NumPy reference (tests)
 def point_triangle_distance_np(p, a, b, c):
-    """NumPy reference: distances (K,) from points p (K,3) to triangles a, b, c (K,3)."""
+    """Distances (K,) mm from points p (K, 3) to the closed triangles a, b, c (K, 3): the
+    project's one NumPy point-triangle distance (the wall check of `jaxvalve.root`, and
+    the tests' reference for the JAX distances).  The distance to the plane where the
+    point's projection falls inside the triangle, else to the nearest edge; a degenerate
+    triangle (zero area: a segment or a point) is measured by its edges alone.  Written
+    apart from `closest_point_soa` (edges and plane, not Voronoi regions), so that the
+    two check each other."""
     p, a, b, c = (np.asarray(v, dtype=np.float64) for v in (p, a, b, c))
-    ab, ac = b - a, c - a
-    dot = lambda u, v: np.sum(u * v, axis=-1)  # noqa: E731
-    d1, d2 = dot(ab, p - a), dot(ac, p - a)
-    d3, d4 = dot(ab, p - b), dot(ac, p - b)
-    d5, d6 = dot(ab, p - c), dot(ac, p - c)
-    vc, vb, va = d1 * d4 - d3 * d2, d5 * d2 - d1 * d6, d3 * d6 - d5 * d4
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t_ab = d1 / (d1 - d3)
-        t_ac = d2 / (d2 - d6)
-        t_bc = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-        den = va + vb + vc
-        v, w = vb / den, vc / den
-        # a collapsed triangle (den = 0) gives nan or inf here, so inside the guard
-        face = a + v[:, None] * ab + w[:, None] * ac
-        choices = [a, b, a + t_ab[:, None] * ab, c, a + t_ac[:, None] * ac,
-                   b + t_bc[:, None] * (c - b)]
-    conds = [
-        (d1 <= 0) & (d2 <= 0),
-        (d3 >= 0) & (d4 <= d3),
-        (vc <= 0) & (d1 >= 0) & (d3 <= 0),
-        (d6 >= 0) & (d5 <= d6),
-        (vb <= 0) & (d2 >= 0) & (d6 <= 0),
-        (va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0),
-    ]
-    q = face
-    for cond, ch in zip(reversed(conds), reversed(choices)):
-        q = np.where(cond[:, None], ch, q)
-    return np.linalg.norm(p - q, axis=-1)
+
+    def seg(u, v):
+        uv = v - u
+        L2 = np.einsum("nd,nd->n", uv, uv)
+        t = np.clip(np.einsum("nd,nd->n", p - u, uv) / np.where(L2 > 0, L2, 1.0), 0.0, 1.0)
+        return np.linalg.norm(p - u - t[:, None] * uv, axis=1)
+
+    edge = np.minimum(np.minimum(seg(a, b), seg(b, c)), seg(c, a))
+    n = np.cross(b - a, c - a)
+    nn = np.einsum("nd,nd->n", n, n)
+    ok = nn > 0
+    nn_ = np.where(ok, nn, 1.0)
+    w = p - a
+    lc = np.einsum("nd,nd->n", np.cross(b - a, w), n) / nn_
+    lb = np.einsum("nd,nd->n", np.cross(w, c - a), n) / nn_
+    inside = ok & (lb >= 0) & (lc >= 0) & (lb + lc <= 1)
+    plane = np.abs(np.einsum("nd,nd->n", w, n)) / np.sqrt(nn_)
+    return np.where(inside, plane, edge)

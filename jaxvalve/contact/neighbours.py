@@ -57,7 +57,7 @@ import numpy as np
 import jax
 import jax.numpy as jnp
 
-from ..batching import batch_any, batch_max, cond_each
+from ..vmap_control import batch_any, batch_max, cond_each
 from ..errors import NeighbourListOverflow, ParameterError
 from .geometry import point_triangle_distance_np
 
@@ -220,7 +220,7 @@ def bucket_sizes(n: int, smallest: int = 64, most: int = 4, factor: int = 4) -> 
 
 def bucket_index(sizes, used):
     """Index of the shortest prefix in `sizes` (descending) holding `used` rows.  Under
-    vmap, the prefix that holds every member's rows (`batching.batch_max`): a longer prefix
+    vmap, the prefix that holds every member's rows (`vmap_control.batch_max`): a longer prefix
     gives the same values (its extra slots are padding), and the `lax.switch` it drives
     then runs one branch instead of all of them."""
     used = batch_max(used)
@@ -361,7 +361,7 @@ def _build(x, triangles, body, cutoff, capacity, scan_capacity, n_bodies, grid_s
     mark = jnp.zeros((S,), i32).at[jnp.where(nr > 0, off, S)].set(gidx, mode="drop")
     sg = _cummax(mark)                                            # (S,) group
     CS = min(S, SCAN_CHUNK)
-    # under vmap, the batch's largest trip count (`batching`): the extra trips of a member
+    # under vmap, the batch's largest trip count (`vmap_control`): the extra trips of a member
     # visit rows past its own (no slot accepted) or redo its last chunk (same values)
     n_chunks = batch_max(((jnp.minimum(n_scan_rows, S) + CS - 1) // CS).astype(i32))
     lane = jnp.arange(WS, dtype=i32)
@@ -512,7 +512,7 @@ def needs_rebuild(nbrs: NeighbourList, x, skin):
 
 def update(nbrs: NeighbourList, x, triangles, body, skin) -> NeighbourList:
     """Rebuild (same cutoff and capacities) under `lax.cond` when `needs_rebuild` (under
-    vmap: only for the members that need it, `batching.cond_each`).
+    vmap: only for the members that need it, `vmap_control.cond_each`).
 
     Usable inside `lax.while_loop`.  ``overflow``, ``count``, ``n_scan`` and
     ``max_group_count`` are sticky (or / max over all rebuilds), so one host-side

@@ -39,7 +39,7 @@ import math
 import jax
 import jax.numpy as jnp
 
-from ..batching import batch_max
+from ..vmap_control import batch_max
 from ..errors import ParameterError
 from .geometry import (closest_point_soa, nearest_search_soa, point_triangle_distance_soa,
                        triangle_table)
@@ -172,7 +172,7 @@ def nearest_triangles(x, triangles, nbrs: NeighbourList, one_sided: bool = False
         key = jnp.where(valid, key, _INT64_MAX)
         return gkey.at[rg].min(jnp.min(key, axis=1), mode="drop")
 
-    # under vmap the batch's largest trip count (`batching`); extra trips see padding rows
+    # under vmap the batch's largest trip count (`vmap_control`); extra trips see padding rows
     n_chunks = batch_max(((nbrs.n_rows + C - 1) // C).astype(jnp.int32))
     gkey = jax.lax.fori_loop(jnp.int32(0), n_chunks, body, jnp.full((R,), _INT64_MAX, jnp.int64))
     found = gkey != _INT64_MAX

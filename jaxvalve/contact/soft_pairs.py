@@ -31,7 +31,7 @@ import functools
 import jax
 import jax.numpy as jnp
 
-from ..batching import cond_each
+from ..vmap_control import cond_each
 from .geometry import point_triangle_distance_soa
 from .neighbours import NeighbourList, bucket_index, bucket_sizes, needs_rebuild
 from .neighbours import update as update_verlet
@@ -176,7 +176,7 @@ def refresh(pairs: SoftPairs, x, triangles, body, skin, law) -> SoftPairs:
     rebuilt = needs_rebuild(pairs.base, x, skin)
     base = update_verlet(pairs.base, x, triangles, body, skin)
     moved = jnp.max(jnp.sum((x - pairs.x_build) ** 2, axis=-1)) > (0.25 * pairs.margin) ** 2
-    # under vmap, rebuilt only for the members that need it (`batching.cond_each`)
+    # under vmap, rebuilt only for the members that need it (`vmap_control.cond_each`)
     return cond_each(
         rebuilt | moved,
         lambda pairs, base, x, tri, law: build_soft_pairs(base, x, tri, law,

@@ -48,6 +48,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .. import assembly, tangent
+from .. import progress as _progress
 from ..contact import ccd
 from ..contact.barrier import ee_energies, pt_energies
 from ..contact.ipc_pairs import BarrierTopology, build_pairs, pair_distances2
@@ -463,6 +464,7 @@ def solve_barrier(problem, params, x0, solver: BarrierNewton, topo: BarrierTopol
         log.residual.append(res)
         log.pairs.append(len(pairs.pt) + len(pairs.ee))
         log.min_gap.append(pairs.min_distance)
+        _progress.beacon(n, res, "BarrierNewton")
         if progress is not None:
             progress(n, res)
         if not np.isfinite(res):

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import functools
 import math
 from typing import Any, Callable, NamedTuple
 
@@ -15,7 +16,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..batching import batch_sum, branches, each_active
+from .. import progress
+from ..vmap_control import batch_sum, branches, each_active
 from ..errors import ParameterError
 
 
@@ -208,19 +210,35 @@ def _set_f0(args, F0):
 _STEP_ARGS = ("nbrs", "f0")
 
 
-def iterate(solver, system, y0, args, *, members_apart: bool = False, handoff: int = 0):
+def _send_beacon(solver, system, y, args, state, n):
+    """Every `progress.BEACON_EVERY` steps: the step count and the relative residual to
+    the host (`jaxvalve.progress.beacon`)."""
+    name = type(solver).__name__
+
+    def send():
+        r = (relative_residual(system, y, args, state["F"]) if "F" in state
+             else jnp.asarray(jnp.nan, y.dtype))
+        jax.debug.callback(functools.partial(progress.beacon, solver=name), n, r)
+
+    jax.lax.cond(n % progress.BEACON_EVERY == 0, send, lambda: None)
+
+
+def iterate(solver, system, y0, args, *, members_apart: bool = False, handoff: int = 0,
+            beacon: bool = True):
     """Run ``solver`` from y0 in one `lax.while_loop`.  Returns (y, args, state, result, n).
     ``args`` must be current for y0 (its pair list built or updated there).
 
     Under `jax.vmap` (`jaxvalve.batch`) the loop runs until every member has finished, and
     a finished member's state is kept.  By default the steps of all members are one
     vectorised program.  members_apart: each member runs its own loop, one member after
-    the other (`batching.each_active`): the same compiled loop as a single solve, so a
+    the other (`vmap_control.each_active`): the same compiled loop as a single solve, so a
     member's result is that of a single solve to the last bit, and a finished member costs
     nothing.  handoff (vectorised steps only): once at most ``handoff`` members are still
     running, each of them finishes in its own loop, so that a straggler's last steps cost
     what they cost alone, not a whole batch's vectorised step (0: never).  Unbatched, all
-    of these give the single solve."""
+    of these give the single solve.  beacon: send the loop's progress to the host
+    (`jaxvalve.progress`); a batched loop must pass False (under vmap the call would run
+    at every step)."""
     state = solver.init(system, y0, args)
     lazy = getattr(solver, "lazy_force", False)   # F(y0) comes from the first step
     if "f0" in args and not lazy:  # residual scale at P = 0: the initial force
@@ -253,12 +271,25 @@ def iterate(solver, system, y0, args, *, members_apart: bool = False, handoff: i
     fixed = {k: v for k, v in args.items() if k not in _STEP_ARGS} if apart else {}
     strip = lambda a: {k: v for k, v in a.items() if k not in fixed}
 
-    def trip(c):
-        # one step: the single solve's loop body (under a plain vmap, every member's)
-        y, args, state, n, done, result, y_upd = c
-        a, y_upd = update(y, {**fixed, **args}, done, y_upd)
-        y, a, state, done, result = advance(y, a, state, done)
-        return y, strip(a), state, n + 1, done, result, y_upd
+    def stepper(send):
+        def trip(c):
+            # one step: the single solve's loop body (under a plain vmap, every member's)
+            y, args, state, n, done, result, y_upd = c
+            a, y_upd = update(y, {**fixed, **args}, done, y_upd)
+            y, a, state, done, result = advance(y, a, state, done)
+            if send:
+                _send_beacon(solver, system, y, a, state, n + 1)
+            return y, strip(a), state, n + 1, done, result, y_upd
+        return trip
+
+    trip = stepper(beacon)
+
+    def member_loop(*c):
+        # one member's own loop (`each_active`): unbatched, so it reports its progress and,
+        # at its end, that one more member has finished
+        c = jax.lax.while_loop(running, stepper(True), c)
+        jax.debug.callback(progress.member_done)
+        return c
 
     def trip_kept(c):
         # `trip` for a loop whose predicate is one for the batch: a member that has stopped
@@ -272,12 +303,12 @@ def iterate(solver, system, y0, args, *, members_apart: bool = False, handoff: i
     else:
         if not members_apart:
             # vectorised while more than ``handoff`` members run, the rebuilds too as one
-            # array program (`batching.branches("select")`)
+            # array program (`vmap_control.branches("select")`)
             many = lambda c: batch_sum(running(c).astype(jnp.int32)) > handoff
             with branches("select"):
                 c = jax.lax.while_loop(many, trip_kept, c)
         # then each member still running finishes in its own loop, the single solve's
-        c = each_active(running(c), lambda *c: jax.lax.while_loop(running, trip, c), *c)
+        c = each_active(running(c), member_loop, *c)
     y, args, state, n, done, result, _ = c
     args = {**fixed, **args}
     result = jnp.where(done, result, RESULTS.max_steps_reached)

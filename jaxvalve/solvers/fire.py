@@ -5,7 +5,7 @@ import dataclasses
 
 import jax.numpy as jnp
 
-from ..batching import cond_each
+from ..vmap_control import cond_each
 from ..errors import ParameterError
 from .base import RESULTS, check_settings, check_state, relative_residual
 
@@ -29,7 +29,7 @@ class FIRE:
     was 459 steps, on the soft leaflets of the paper's Table 4 at 3 mmHg 690; at 80 mmHg
     those soft valves last halve their best residual by step 242-3056 and then wander for
     the rest of the step cap, which cost 50 000 steps before the fallback could start
-    (docs/mechanics-and-solvers.md, "FIRE's patience")."""
+    (docs/mechanics.md, "FIRE's patience")."""
 
     rtol: float = 1e-6
     max_steps: int = 50_000
@@ -82,7 +82,7 @@ class FIRE:
     def step(self, system, y, args, s):
         F, v = s["F"], s["v"]
         # masses: set at the first step, raised every `refresh` steps (stiffening).  Under
-        # vmap only the members due compute them (`batching.cond_each`); a member that has
+        # vmap only the members due compute them (`vmap_control.cond_each`); a member that has
         # finished (``args["active"]`` False, `iterate`) is never due
         floor = jnp.where(s["n"] == 0, 0.0, s["m"])
         due = (s["n"] % self.refresh == 0) & args.get("active", True)

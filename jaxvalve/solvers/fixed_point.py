@@ -5,7 +5,7 @@ import dataclasses
 
 import jax.numpy as jnp
 
-from ..batching import cond_each
+from ..vmap_control import cond_each
 from ..errors import ParameterError
 from .base import RESULTS, check_settings, check_state, relative_residual
 

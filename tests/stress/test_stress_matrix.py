@@ -10,7 +10,7 @@ import re
 import numpy as np
 import pytest
 
-from jaxvalve import stress as S
+import stress_suite as S
 from jaxvalve.checks import (crossing_depth, gent_invariant, interior_edges,
                              inverted_triangles, triangle_checks)
 from jaxvalve.meshgen import disk

@@ -7,7 +7,7 @@ import re
 import numpy as np
 import pytest
 
-from jaxvalve import stress as S
+import stress_suite as S
 from jaxvalve import valve as V
 from jaxvalve.leaflet_mesh import mesh_leaflet
 from jaxvalve.scene import Scene

@@ -1,5 +1,6 @@
-"""Stress suite for numerical stability (issue 5): run closures over a matrix of materials,
-loads, templates, models and precisions, plus hard cases, and classify every run.
+"""The stress suite's harness (a benchmark, not part of the library): run closures over a
+matrix of materials, loads, templates, models and precisions, plus hard cases, and
+classify every run.
 
 Each run ends one of three ways (`classify`):
 
@@ -22,14 +23,14 @@ group of (E, P) costs one closure per load.  The run is judged on its final stat
 it returns; the 3 mmHg stage's result is recorded with it (``stage1``).
 
 The paper's Fig. 3 templates (a) r=11, a=11, b=11; (b) r=12, a=13, b=13; (c) r=13, a=13,
-b=14 mm, alpha = 160 degrees, break the template's rule 2b > |AD| (docs/benchmarks.md).  The
+b=14 mm, alpha = 160 degrees, break the template's rule 2b > |AD| (docs/benchmark-notes.md).  The
 suite tries each as given (a `ParameterError` naming b is the expected, clear report) and
 runs the matrix on the nearest valid variant: the same r and a, with b = |AD|/2 + 1 mm
 (`paper_templates`).  The root is the benchmark root fitted to each template's sutured
 length.
 
 `benchmarks/stress.py` runs the full matrix and prints the pass table; `tests/stress/`
-runs a small part.
+runs a small part (`tests/conftest.py` loads this file as the module ``stress_suite``).
 """
 from __future__ import annotations
 
@@ -40,14 +41,14 @@ import traceback
 
 import numpy as np
 
-from . import valve as V
-from .checks import crossing_depth, gent_invariant, triangle_checks
-from .errors import ConvergenceError, JaxvalveError
-from .leaflet_mesh import LeafletMesh, mesh_leaflet
-from .mesh import signed_areas_np, triangle_angles
-from .scene import MODELS, PRECISIONS, Scene
-from .closure import close_load, close_valve
-from .template import PAPER_TEMPLATES, Template
+from jaxvalve import valve as V
+from jaxvalve.checks import crossing_depth, gent_invariant, triangle_checks
+from jaxvalve.errors import ConvergenceError, JaxvalveError
+from jaxvalve.leaflet_mesh import LeafletMesh, mesh_leaflet
+from jaxvalve.mesh import signed_areas_np, triangle_angles
+from jaxvalve.scene import MODELS, PRECISIONS, Scene
+from jaxvalve.closure import close_load, close_valve
+from jaxvalve.template import PAPER_TEMPLATES, Template
 
 __all__ = ["RunRecord", "MATRIX_E", "MATRIX_P", "STRESS_H", "STRESS_MAX_STEPS",
            "paper_templates", "make_valve", "mapped_mesh", "closed_state", "perturbed_mesh",
@@ -80,7 +81,7 @@ def paper_templates(margin: float = 1.0) -> dict:
 def make_valve(template: Template, h: float = STRESS_H, mesh: LeafletMesh | None = None):
     """The valve of ``template`` at mesh size h in the benchmark root fitted to it (or of
     a given, e.g. perturbed or mapped, ``mesh`` of that template)."""
-    from .root import benchmark_root
+    from jaxvalve.root import benchmark_root
     lmesh = mesh_leaflet(template, h) if mesh is None else mesh
     return V.build_valve(benchmark_root(template.sutured_length, wall=False), lmesh)
 
@@ -89,7 +90,7 @@ def mapped_mesh(base: LeafletMesh, template: Template) -> LeafletMesh:
     """``base``'s triangles with its nodes moved onto ``template``
     (`jaxvalve.template_map`): every template then has the same topology, so one compiled
     solve per (model, precision) serves them all (a compile costs 15-30 s here)."""
-    from .template_map import template_map
+    from jaxvalve.template_map import template_map
     if template == base.template:
         return base
     tm = template_map(base)
@@ -102,7 +103,7 @@ def mapped_mesh(base: LeafletMesh, template: Template) -> LeafletMesh:
 
 def _interior(lmesh: LeafletMesh):
     """Indices of interior template nodes (the mesher puts the boundary nodes first)."""
-    from .mesh import boundary_nodes
+    from jaxvalve.mesh import boundary_nodes
     return np.flatnonzero(~boundary_nodes(lmesh.triangles))
 
 
@@ -253,7 +254,7 @@ def _judge(rec: RunRecord, valve, ls, scene: Scene):
     `jaxvalve.closure.LoadSolve`: its state, report and continuation) and classify it.
     A closure that ended at a limit point is reported as ``limit_point``, its state the
     equilibrium at the highest pressure found."""
-    from .simulation import measure
+    from jaxvalve.simulation import measure
     sol, x64, rep = ls.solution, ls.x, ls.report
     rec.result = rep.result
     rec.path = rep.path or ""
@@ -345,9 +346,9 @@ PAIR_CAPACITY = 4
 
 
 def _stale_pairs(valve, contact, dtype):
-    from .contact.neighbours import default_capacity, stale_list
-    from .contact.soft_pairs import default_soft_capacity, stale_soft_pairs
-    from .equilibrium import contact_cutoff
+    from jaxvalve.contact.neighbours import default_capacity, stale_list
+    from jaxvalve.contact.soft_pairs import default_soft_capacity, stale_soft_pairs
+    from jaxvalve.equilibrium import contact_cutoff
     prob = valve.problem
     n = prob.n_nodes
     cutoff = contact_cutoff(contact, None, prob.triangles, valve.skin)

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._ops import seg_fraction, sdiv, step
+from .level_sets import seg_fraction, sdiv, step
 
 
 def _norm(v, xp):

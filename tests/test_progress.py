@@ -1,0 +1,77 @@
+"""Live progress (`jaxvalve.progress`): the heartbeat's lines and timing, and the beacons
+of a compiled solve."""
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxvalve import equilibrium, meshgen, progress
+from jaxvalve.materials import StVenantKirchhoff
+from jaxvalve.problem import Params, make_problem, mmhg
+from jaxvalve.solvers import FIRE
+
+
+def test_heartbeat_line_phase_beacon_and_estimate():
+    lines = []
+    hb = progress.Heartbeat(lines.append, every=2.0, unit="members")
+    hb.say("closing at 80 mmHg")
+    assert lines == ["closing at 80 mmHg"]
+    t = hb._t_phase
+    # no beacon since the phase began: the run is compiling or setting up
+    assert hb.line(t + 5.0) == ("... 5 s in: closing at 80 mmHg; compiling or setting up "
+                                "(no solver step yet)")
+    progress.beacon(jnp.asarray(300), jnp.asarray(3.25e-3), "FIRE")
+    assert hb.line(t + 7.0) == "... 7 s in: closing at 80 mmHg; FIRE step 300, residual 3.25e-03"
+    # a new phase forgets the old beacon
+    hb.say("measuring coaptation")
+    assert "no solver step yet" in hb.line()
+    # done / total, and the time left from the mean time per unit so far
+    hb.count(3, 9)
+    line = hb.line(hb._t0 + 120.0)
+    assert "3/9 members done, about 4.0 min left" in line     # 120 s for 3, 6 to go
+    hb.count(9, 9)
+    assert hb.line(hb._t0 + 360.0).endswith("9/9 members done")
+    progress.member_done()
+    progress.member_done()
+    assert "2 member solves finished" in hb.line()
+
+
+def test_heartbeat_speaks_when_the_run_is_silent_and_only_then():
+    lines = []
+    with progress.Heartbeat(lines.append, every=0.2) as hb:
+        hb.say("a silent phase")
+        time.sleep(1.05)
+        n_silent = len(lines) - 1
+        hb.count(0, 1)
+        for i in range(10):                 # a chatty phase: 10 lines in 0.5 s
+            hb.say(f"line {i}")
+            time.sleep(0.05)
+    beats = [ln for ln in lines if ln.startswith("... ")]
+    assert 3 <= n_silent <= 6, lines        # one every 0.2-0.3 s (the thread polls at 0.1 s)
+    assert all("a silent phase" in ln for ln in beats)      # none during the chatty phase
+    n = len(lines)
+    time.sleep(0.4)
+    assert len(lines) == n                  # the thread has stopped
+
+
+def test_a_compiled_solve_reports_its_steps():
+    """FIRE's `lax.while_loop` sends a beacon every BEACON_EVERY steps with the relative
+    residual at that step: the last one matches a solve stopped there."""
+    p, t, rim = meshgen.disk(5.0, 6)
+    problem, ref = make_problem(p, t, fixed=rim)
+    params = Params(ref=ref, material=StVenantKirchhoff(E=1.0, nu=0.45), thickness=0.3,
+                    pressure=mmhg(80))
+    x0 = jnp.asarray(meshgen.lift(p))
+    every = progress.BEACON_EVERY
+    before = progress.latest()
+    sol = equilibrium.solve(problem, params, x0, FIRE(rtol=1e-12, max_steps=2 * every + 50),
+                            throw=False)
+    jax.effects_barrier()
+    after = progress.latest()
+    assert int(sol.stats.steps) == 2 * every + 50
+    assert after["serial"] - before["serial"] == 2
+    assert after["steps"] == 2 * every and after["solver"] == "FIRE"
+    stop = equilibrium.solve(problem, params, x0, FIRE(rtol=1e-12, max_steps=2 * every),
+                             throw=False)
+    np.testing.assert_allclose(after["residual"], float(stop.stats.residual), rtol=1e-10)
