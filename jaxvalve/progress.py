@@ -26,7 +26,10 @@ from typing import Callable
 
 import numpy as np
 
-__all__ = ["BEACON_EVERY", "beacon", "member_done", "latest", "Heartbeat"]
+__all__ = ["BEACON_EVERY", "EVERY_S", "beacon", "member_done", "latest", "Heartbeat"]
+
+#: Seconds of silence after which the heartbeat prints a line (`Heartbeat`'s default).
+EVERY_S = 2.0
 
 #: Loop steps between two beacons of a compiled solve (a FIRE step costs 0.3-3 ms on the
 #: valve, so 100 steps are 0.03-0.3 s: several beacons per heartbeat line).
@@ -74,13 +77,14 @@ def _duration(s: float) -> str:
 
 class Heartbeat:
     """Context manager: print a progress line whenever the run has been silent for
-    ``every`` seconds (see the module docstring).  ``say`` prints one line (e.g. a
+    ``every`` seconds (default `EVERY_S`; see the module docstring).  ``say`` prints one line (e.g. a
     command's own printer).  Use `say` for the run's own lines and `count` to tell it
     how many of how many units (sweep members, optimiser iterations) are done."""
 
-    def __init__(self, say: Callable[[str], None], every: float = 2.0, unit: str = ""):
+    def __init__(self, say: Callable[[str], None], every: float | None = None,
+                 unit: str = ""):
         self._print = say
-        self.every = float(every)
+        self.every = float(EVERY_S if every is None else every)
         self.unit = unit
         self._lock = threading.Lock()
         self._stop = threading.Event()
