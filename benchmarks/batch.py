@@ -32,10 +32,10 @@ import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
 import jaxvalve  # noqa: E402,F401  (float64)
-from jaxvalve import materials as M  # noqa: E402
+from jaxvalve.mechanics import materials as M  # noqa: E402
 from jaxvalve import valve as V  # noqa: E402
 from jaxvalve.batch import METRICS, simulate_batch  # noqa: E402
-from jaxvalve.leaflet_mesh import mesh_leaflet  # noqa: E402
+from jaxvalve.geometry.leaflet_mesh import mesh_leaflet  # noqa: E402
 from jaxvalve.scene import BENCHMARK_H, MODELS, Scene  # noqa: E402
 from jaxvalve.simulation import simulate  # noqa: E402
 

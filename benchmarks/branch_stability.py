@@ -28,9 +28,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from closure_speed import Tee  # noqa: E402  (this folder is on the path of a script)
-from jaxvalve import checks  # noqa: E402
-from jaxvalve.closure import _params  # noqa: E402
-from jaxvalve.leaflet_mesh import mesh_leaflet  # noqa: E402
+from jaxvalve.valve import checks  # noqa: E402
+from jaxvalve.valve.closure import _params  # noqa: E402
+from jaxvalve.geometry.leaflet_mesh import mesh_leaflet  # noqa: E402
 from jaxvalve.scene import Scene  # noqa: E402
 from jaxvalve.solvers import BarrierNewton, solve_barrier  # noqa: E402
 from jaxvalve.solvers.barrier_newton import _Model, lowest_modes  # noqa: E402

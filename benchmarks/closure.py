@@ -17,7 +17,7 @@ import numpy as np
 
 import jaxvalve  # noqa: F401  (float64)
 from jaxvalve import valve as V
-from jaxvalve.leaflet_mesh import mesh_leaflet
+from jaxvalve.geometry.leaflet_mesh import mesh_leaflet
 from jaxvalve.scene import Scene
 
 

@@ -4,7 +4,7 @@ to the same relative residual, for each material model:
 * "fire + smooth": the FIRE path alone (smooth one-sided penalty, FIRE, no fallback), the
   baseline;
 * "default": `Scene()`'s closure, FIRE on the smooth law with the barrier path as its
-  fallback where that fails (`jaxvalve.closure`, "Fallback"); the column "closed by"
+  fallback where that fails (`jaxvalve.valve.closure`, "Fallback"); the column "closed by"
   names the path that closed the valve;
 * "newton + barrier": the barrier contact and projected Newton throughout.
 

@@ -135,9 +135,9 @@ def old_energy(c, x, triangles, lst, node_area):
 
 # ---------------------------------------------------------------------- configurations
 def valve(h, state=None):
-    from jaxvalve.leaflet_mesh import mesh_leaflet
-    from jaxvalve.root import benchmark_root
-    from jaxvalve.template import Template
+    from jaxvalve.geometry.leaflet_mesh import mesh_leaflet
+    from jaxvalve.geometry.root import benchmark_root
+    from jaxvalve.geometry.template import Template
     from jaxvalve.valve import build_valve
 
     tpl = Template(12, 6.7, 15)

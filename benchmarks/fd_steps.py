@@ -13,7 +13,7 @@ so a metric is only piecewise smooth in E, and a step that moves nodes across g0
 a chord, not the derivative.  With ``--contact barrier`` (projected Newton on the IPC
 barrier, d_hat = 0.2 mm) the contact energy is C2 where a pair enters its range and C1
 only where a pair's closest feature changes type, and the adjoint is the barrier's
-(`jaxvalve.adjoint`, the exact Jacobian's LU).
+(`jaxvalve.solvers.adjoint`, the exact Jacobian's LU).
 """
 from __future__ import annotations
 

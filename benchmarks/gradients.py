@@ -11,7 +11,7 @@ for r, a, b and a relative ``--step`` for E).  Prints one table row per metric a
 the worst relative error of each point (over the entries whose central difference exceeds
 1e-2) and the time of the sensitivities against one warm closure.  ``--contact barrier``
 closes on the IPC barrier by projected Newton, with the barrier's adjoint
-(`jaxvalve.adjoint`).
+(`jaxvalve.solvers.adjoint`).
 """
 from __future__ import annotations
 

@@ -32,8 +32,8 @@ def _theta2_law():
     flat state, where arccos has no derivative)."""
     import jax.numpy as jnp
 
-    import jaxvalve.bending as B
-    import jaxvalve.tangent as T
+    import jaxvalve.mechanics.bending as B
+    import jaxvalve.solvers.tangent as T
 
     def half_theta2(c):
         u = 1.0 - c

@@ -39,7 +39,10 @@ jax.config.update("jax_enable_compilation_cache", False)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from jaxvalve import Scene, adjoint, tangent  # noqa: E402
+from jaxvalve import Scene  # noqa: E402
+from jaxvalve.solvers import tangent  # noqa: E402
+
+from jaxvalve.solvers import adjoint
 from jaxvalve.quick_jit import QUICK_CPU_OPTIONS  # noqa: E402
 from optimize import Objective  # noqa: E402
 from optimize.evaluate import Evaluator  # noqa: E402

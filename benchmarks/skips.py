@@ -67,13 +67,14 @@ GAP = 0.2  # mm: SmoothContact().gap
 STATES = ("closed", "placed", "closed, 1 mm skin")
 
 import jaxvalve  # noqa: E402
-from jaxvalve import assembly, equilibrium  # noqa: E402
-from jaxvalve import materials as M  # noqa: E402
-from jaxvalve.bending import Bending  # noqa: E402
+from jaxvalve.mechanics import assembly
+from jaxvalve.solvers import equilibrium  # noqa: E402
+from jaxvalve.mechanics import materials as M  # noqa: E402
+from jaxvalve.mechanics.bending import Bending  # noqa: E402
 from jaxvalve.contact import build_neighbours, build_neighbours_checked  # noqa: E402
 from jaxvalve.contact.neighbours import MAX_GROUP  # noqa: E402
 from jaxvalve.contact.smooth import nearest_triangles, soft_energy_reference  # noqa: E402
-from jaxvalve.mesh import right_cauchy_green  # noqa: E402
+from jaxvalve.geometry.mesh import right_cauchy_green  # noqa: E402
 from jaxvalve.scene import Scene  # noqa: E402
 from jaxvalve.simulation import build_scene_valve  # noqa: E402
 

@@ -27,7 +27,8 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxvalve
-from jaxvalve import assembly, equilibrium
+from jaxvalve.mechanics import assembly
+from jaxvalve.solvers import equilibrium
 from jaxvalve.contact import build_neighbours
 from jaxvalve.contact.smooth import soft_energy_reference
 from jaxvalve.contact.soft_pairs import build_soft_pairs

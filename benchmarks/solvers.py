@@ -18,9 +18,11 @@ import jax
 jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 
-from jaxvalve import equilibrium, meshgen  # noqa: E402
-from jaxvalve.materials import StVenantKirchhoff  # noqa: E402
-from jaxvalve.problem import Params, make_problem, mmhg  # noqa: E402
+from jaxvalve.solvers import equilibrium
+
+from jaxvalve.geometry import meshgen  # noqa: E402
+from jaxvalve.mechanics.materials import StVenantKirchhoff  # noqa: E402
+from jaxvalve.mechanics.problem import Params, make_problem, mmhg  # noqa: E402
 from jaxvalve.solvers import FIRE, FixedPoint, NewtonKrylov  # noqa: E402
 
 

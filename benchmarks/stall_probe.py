@@ -2,7 +2,7 @@
 
 Closes each cell of the paper's Table 4 (mass-spring E1 x E2, E3 = 1.2 MPa, benchmark
 root and template) with the default path (one-sided soft-min penalty, FIRE), and where
-the 80 mmHg closure did not converge, probes the state it stopped at (`jaxvalve.stall`,
+the 80 mmHg closure did not converge, probes the state it stopped at (`jaxvalve.solvers.stall`,
 which `simulate` also runs on a closure stopped at its step cap): each node moves along
 the residual force by ``t`` times that node's share (the node with the largest force
 moves t mm), and the change of each force term (elastic, bending, contact) is printed
@@ -31,11 +31,11 @@ import jax.numpy as jnp  # noqa: E402
 
 from closure_speed import Tee  # noqa: E402  (this folder is on the path of a script)
 from jaxvalve import Scene, simulate  # noqa: E402
-from jaxvalve.bending import hinges  # noqa: E402
+from jaxvalve.mechanics.bending import hinges  # noqa: E402
 from jaxvalve.cli.sweep import TABLE4_E1, TABLE4_E2, TABLE4_E3  # noqa: E402
 from jaxvalve.contact.geometry import point_triangle_distance_soa  # noqa: E402
 from jaxvalve.simulation import build_scene_valve  # noqa: E402
-from jaxvalve.stall import probe  # noqa: E402
+from jaxvalve.solvers.stall import probe  # noqa: E402
 from jaxvalve.xla_setup import platform_summary  # noqa: E402
 
 

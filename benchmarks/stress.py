@@ -55,7 +55,7 @@ def main(argv=None):
     import jax
     jax.config.update("jax_enable_x64", True)
     import stress_suite as S
-    from jaxvalve.leaflet_mesh import mesh_leaflet
+    from jaxvalve.geometry.leaflet_mesh import mesh_leaflet
 
     args = _parse(argv)
     if args.quick:

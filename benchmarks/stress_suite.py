@@ -6,7 +6,7 @@ Each run ends one of three ways (`classify`):
 
 * ``converged``: the solve at the run's load reports success with a finite relative
   residual below rtol, the state is finite, no triangle is collapsed or folded over
-  (`jaxvalve.checks`), no two leaflets cross (`jaxvalve.valve.leaflet_crossings`, an exact
+  (`jaxvalve.valve.checks`), no two leaflets cross (`jaxvalve.valve.leaflet_crossings`, an exact
   test that shares no code with contact), a Gent state keeps every triangle inside its
   stretch limit (checked here in NumPy), and every coaptation metric is finite;
 * ``reported``: the solve says it did not converge (its result name and residual are the
@@ -16,7 +16,7 @@ Each run ends one of three ways (`classify`):
   exception type (IndexError, FloatingPointError, ...).
 
 A run at load P is a two-stage continuation like `jaxvalve.simulate`, by the same closure
-driver (`jaxvalve.closure`): the valve is closed at 3 mmHg from the placement, then at P
+driver (`jaxvalve.valve.closure`): the valve is closed at 3 mmHg from the placement, then at P
 from that state, with continuation in pressure where a solve runs away (for P = 3 the
 first stage is the run).  The 3 mmHg stage is shared by the runs at 80 and 200 mmHg of one material, so a
 group of (E, P) costs one closure per load.  The run is judged on its final state, the one
@@ -42,13 +42,13 @@ import traceback
 import numpy as np
 
 from jaxvalve import valve as V
-from jaxvalve.checks import crossing_depth, gent_invariant, triangle_checks
+from jaxvalve.valve.checks import crossing_depth, gent_invariant, triangle_checks
 from jaxvalve.errors import ConvergenceError, JaxvalveError
-from jaxvalve.leaflet_mesh import LeafletMesh, mesh_leaflet
-from jaxvalve.mesh import signed_areas_np, triangle_angles
+from jaxvalve.geometry.leaflet_mesh import LeafletMesh, mesh_leaflet
+from jaxvalve.geometry.mesh import signed_areas_np, triangle_angles
 from jaxvalve.scene import MODELS, PRECISIONS, Scene
-from jaxvalve.closure import close_load, close_valve
-from jaxvalve.template import PAPER_TEMPLATES, Template
+from jaxvalve.valve.closure import close_load, close_valve
+from jaxvalve.geometry.template import PAPER_TEMPLATES, Template
 
 __all__ = ["RunRecord", "MATRIX_E", "MATRIX_P", "STRESS_H", "STRESS_MAX_STEPS",
            "paper_templates", "make_valve", "mapped_mesh", "closed_state", "perturbed_mesh",
@@ -81,16 +81,16 @@ def paper_templates(margin: float = 1.0) -> dict:
 def make_valve(template: Template, h: float = STRESS_H, mesh: LeafletMesh | None = None):
     """The valve of ``template`` at mesh size h in the benchmark root fitted to it (or of
     a given, e.g. perturbed or mapped, ``mesh`` of that template)."""
-    from jaxvalve.root import benchmark_root
+    from jaxvalve.geometry.root import benchmark_root
     lmesh = mesh_leaflet(template, h) if mesh is None else mesh
     return V.build_valve(benchmark_root(template.sutured_length, wall=False), lmesh)
 
 
 def mapped_mesh(base: LeafletMesh, template: Template) -> LeafletMesh:
     """``base``'s triangles with its nodes moved onto ``template``
-    (`jaxvalve.template_map`): every template then has the same topology, so one compiled
+    (`jaxvalve.geometry.template_map`): every template then has the same topology, so one compiled
     solve per (model, precision) serves them all (a compile costs 15-30 s here)."""
-    from jaxvalve.template_map import template_map
+    from jaxvalve.geometry.template_map import template_map
     if template == base.template:
         return base
     tm = template_map(base)
@@ -103,7 +103,7 @@ def mapped_mesh(base: LeafletMesh, template: Template) -> LeafletMesh:
 
 def _interior(lmesh: LeafletMesh):
     """Indices of interior template nodes (the mesher puts the boundary nodes first)."""
-    from jaxvalve.mesh import boundary_nodes
+    from jaxvalve.geometry.mesh import boundary_nodes
     return np.flatnonzero(~boundary_nodes(lmesh.triangles))
 
 
@@ -251,7 +251,7 @@ def _metric_values(m):
 
 def _judge(rec: RunRecord, valve, ls, scene: Scene):
     """Fill the checks of ``rec`` from the closure's outcome at its load (a
-    `jaxvalve.closure.LoadSolve`: its state, report and continuation) and classify it.
+    `jaxvalve.valve.closure.LoadSolve`: its state, report and continuation) and classify it.
     A closure that ended at a limit point is reported as ``limit_point``, its state the
     equilibrium at the highest pressure found."""
     from jaxvalve.simulation import measure
@@ -348,7 +348,7 @@ PAIR_CAPACITY = 4
 def _stale_pairs(valve, contact, dtype):
     from jaxvalve.contact.neighbours import default_capacity, stale_list
     from jaxvalve.contact.soft_pairs import default_soft_capacity, stale_soft_pairs
-    from jaxvalve.equilibrium import contact_cutoff
+    from jaxvalve.solvers.equilibrium import contact_cutoff
     prob = valve.problem
     n = prob.n_nodes
     cutoff = contact_cutoff(contact, None, prob.triangles, valve.skin)
@@ -370,14 +370,14 @@ def _start_pairs(valve, scene: Scene):
 
 def _first_stage(valve, scene: Scene):
     """The closure at `HE_PRESSURE` from the valve's start, as `simulate` runs it (the
-    one closure driver, `jaxvalve.closure.close_valve`): a `LoadSolve`."""
+    one closure driver, `jaxvalve.valve.closure.close_valve`): a `LoadSolve`."""
     return close_valve(valve, scene, pressures=(HE_PRESSURE,),
                        nbrs=_start_pairs(valve, scene))[0]
 
 
 def _next_stage(valve, scene: Scene, p, first):
     """The closure at p > `HE_PRESSURE` after the first stage (its `LoadSolve`), as
-    `simulate` runs it (`jaxvalve.closure.close_valve` with the first stage done): from
+    `simulate` runs it (`jaxvalve.valve.closure.close_valve` with the first stage done): from
     the first stage's state, with continuation in pressure where a solve runs away
     (``escaped``: a node farther from its start than the valve's diameter, soft leaflets
     ballooning out of the root), so that a load past the membrane's inflation limit ends

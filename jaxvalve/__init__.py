@@ -11,8 +11,8 @@ from . import xla_setup  # noqa: E402
 
 xla_setup.configure()     # XLA's YNNPACK fusions off (see xla_setup), before any compile
 
-from .equilibrium import solve  # noqa: E402
-from .problem import Params, Problem, make_problem, mmhg  # noqa: E402
+from .solvers.equilibrium import solve  # noqa: E402
+from .mechanics.problem import Params, Problem, make_problem, mmhg  # noqa: E402
 from .scene import Scene  # noqa: E402
 from .simulation import SimulationResult, simulate  # noqa: E402
 from .batch import BatchResult, simulate_batch  # noqa: E402

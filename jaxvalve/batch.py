@@ -6,7 +6,7 @@ of one model (one pytree structure: `StVenantKirchhoff`, `NeoHookean`, `Gent` or
 ``scene.he_pressure`` from the valve's start, then at ``scene.pressure`` from that state)
 run for all members under `jax.vmap`, inside ONE `jax.jit`; every material float is a
 traced input, so a second batch of the same size and model does not recompile.  Each
-member's outcome then goes through the one closure driver (`jaxvalve.closure.close_valve`,
+member's outcome then goes through the one closure driver (`jaxvalve.valve.closure.close_valve`,
 with the batched solves as its first attempts): the state check, continuation in pressure
 for a member that ran away, the stall probe for one stopped at its step cap, so that a
 member's report is `simulate`'s.  The sharp coaptation metrics are measured per member on
@@ -54,15 +54,15 @@ from . import contact as _contact
 from .vmap_control import branches
 from .contact.neighbours import DEFAULT_SCAN_RATIO, MAX_GROUP
 from .contact.soft_pairs import SoftPairs, stale_soft_pairs
-from .equilibrium import _make_args, contact_cutoff, stale_pairs, update_pairs
+from .solvers.equilibrium import _make_args, contact_cutoff, stale_pairs, update_pairs
 from .errors import ConvergenceError, ParameterError
-from .materials import Material
-from .problem import mmhg, validate_params
+from .mechanics.materials import Material
+from .mechanics.problem import mmhg, validate_params
 from .scene import Scene
-from . import valve as V
+from .valve import model as V
 from .simulation import _quiet, build_scene_valve, measure
 from .timing import compile_timer
-from .closure import close_valve
+from .valve.closure import close_valve
 from .solvers import RESULTS, Solution, Stats, iterate
 from .solvers.base import relative_residual
 
@@ -131,8 +131,8 @@ def stack_materials(materials, template: Material | None = None):
     for i, m in enumerate(members):
         if not isinstance(m, Material):
             raise ParameterError(f"materials[{i}] is a {type(m).__name__}, not a material "
-                                 "(jaxvalve.materials: StVenantKirchhoff, NeoHookean, Gent, "
-                                 "MassSpring)")
+                                 "(jaxvalve.mechanics.materials: StVenantKirchhoff, "
+                                 "NeoHookean, Gent, MassSpring)")
     kind, tree0 = type(members[0]), jax.tree_util.tree_structure(members[0])
     for i, m in enumerate(members):
         if type(m) is not kind or jax.tree_util.tree_structure(m) != tree0:

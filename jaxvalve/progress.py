@@ -77,9 +77,10 @@ def _duration(s: float) -> str:
 
 class Heartbeat:
     """Context manager: print a progress line whenever the run has been silent for
-    ``every`` seconds (default `EVERY_S`; see the module docstring).  ``say`` prints one line (e.g. a
-    command's own printer).  Use `say` for the run's own lines and `count` to tell it
-    how many of how many units (sweep members, optimiser iterations) are done."""
+    ``every`` seconds (default `EVERY_S`; see the module docstring).  ``say`` prints one
+    line (e.g. a command's own printer).  Use `say` for the run's own lines and `count`
+    to tell it how many of how many units (sweep members, optimiser iterations) are
+    done."""
 
     def __init__(self, say: Callable[[str], None], every: float | None = None,
                  unit: str = ""):

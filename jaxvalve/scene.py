@@ -9,7 +9,7 @@ free edge 2b = 30 mm (Labrosse et al. 2006, free-edge length 30 mm), arc radius 
 (the annulus radius, so the belly's arc matches the annulus), alpha = 160 degrees (the
 paper), and a = 7.1 mm, which makes the sutured edge 47.71 mm: the length of the benchmark
 suturing path whose commissures stand at the valve height of 16.8 mm (Labrosse).  The root
-is fitted to this length (`jaxvalve.root.benchmark_root`), giving H_c = 16.8 mm.
+is fitted to this length (`jaxvalve.geometry.root.benchmark_root`), giving H_c = 16.8 mm.
 h = 0.88 mm gives 1329 triangles a leaflet, the paper's ~1313.
 """
 from __future__ import annotations
@@ -20,7 +20,7 @@ import tomllib
 from pathlib import Path
 
 from .errors import ParameterError
-from .template import Template
+from .geometry.template import Template
 
 __all__ = ["Scene", "BENCHMARK_TEMPLATE", "BENCHMARK_H", "MODELS", "SOLVERS", "CONTACTS",
            "PRECISIONS"]
@@ -42,7 +42,7 @@ VALVE_DT_MAX = 1.5
 #: Newton iterations of one barrier closure at most (``max_steps`` caps it lower): the
 #: benchmark valve takes 50-130 a load (`benchmarks/closure_speed.py`,
 #: `benchmarks/table4_barrier.py`); a load step not closed within it is cut by the
-#: continuation in pressure (`jaxvalve.continuation.cut_on`).
+#: continuation in pressure (`jaxvalve.solvers.continuation.cut_on`).
 BARRIER_NEWTON_STEPS = 200
 
 
@@ -60,13 +60,13 @@ class Scene:
     (default 1e-4: the coaptation metrics then agree with a 1e-6 solve to ~0.01 mm; see
     docs/benchmark-notes.md, "Run time against error").
     bending: plate bending stiffness as a multiple of the physical D = E H^3 / (12 (1 -
-    nu^2)) (`jaxvalve.bending`); 0 gives the specified pure membrane.
+    nu^2)) (`jaxvalve.mechanics.bending`); 0 gives the specified pure membrane.
     precision: the floating type of the solve, "float64" (default) or "float32" (states,
     parameters and forces; the metrics are always measured in float64).  float32 forces
     carry rounding near 1e-4 of ||F_pressure|| at 3 mmHg, so a float32 closure may stop
     short of rtol = 1e-4 there (docs/benchmark-notes.md, "Run time against error").
     fallback: where a closure on the smooth law fails (anything but a limit point), close
-    the valve again on the barrier law by projected Newton (`jaxvalve.closure`,
+    the valve again on the barrier law by projected Newton (`jaxvalve.valve.closure`,
     "Fallback"; float64 only).  The reports name the path that closed each load.
     """
 
@@ -151,7 +151,7 @@ class Scene:
 
     def material(self):
         """The material law with its parameters (validated)."""
-        from . import materials as m
+        from .mechanics import materials as m
         if self.model == "stvk":
             mat = m.StVenantKirchhoff(E=self.E, nu=self.nu)
         elif self.model == "neo-hookean":
@@ -171,26 +171,26 @@ class Scene:
     def load_root(self):
         """The `AorticRoot`: the benchmark fitted to this template, or read from files."""
         if isinstance(self.root, str) and self.root == "benchmark":
-            from .root import benchmark_root
+            from .geometry.root import benchmark_root
             return benchmark_root(self.template().sutured_length)
         try:
             surface, landmarks = self.root
         except (TypeError, ValueError):
             raise ParameterError("root must be 'benchmark' or (surface_file, landmarks_file); "
                                  f"got {self.root!r}") from None
-        from .io import read_root
+        from .io.files import read_root
         return read_root(surface, landmarks)
 
     def contact_law(self):
         from .contact import BarrierContact, PaperContact
-        from .valve import valve_contact
+        from .valve.model import valve_contact
         if self.contact == "barrier":
             return BarrierContact()
         return valve_contact() if self.contact == "smooth" else PaperContact()
 
     def bending_law(self):
         """`Bending` (or None for a pure membrane, bending = 0)."""
-        from .bending import Bending
+        from .mechanics.bending import Bending
         return Bending(float(self.bending)) if self.bending > 0 else None
 
     def make_solver(self):

@@ -2,7 +2,7 @@
 
 Steps (each reported to ``progress``): build the root, mesh the template, place the three
 leaflets, close at the effective-height load (3 mmHg) from the placement, then at the
-diastolic load (80 mmHg) from that state (`jaxvalve.closure.close_valve`, the one closure
+diastolic load (80 mmHg) from that state (`jaxvalve.valve.closure.close_valve`, the one closure
 driver: both solves share one compiled function, since P is a traced parameter), and
 measure the coaptation characteristics (docs/metrics.md) on both states.  Returns a `SimulationResult`.
 """
@@ -14,11 +14,11 @@ from typing import Any, Callable
 
 import numpy as np
 
-from . import valve as V
-from .closure import SolveReport, close_valve
+from .valve import model as V
+from .valve.closure import SolveReport, close_valve
 from .coaptation import annulus_level, coaptation_metrics
 from .errors import ConvergenceError
-from .leaflet_mesh import mesh_leaflet
+from .geometry.leaflet_mesh import mesh_leaflet
 from .scene import Scene
 from .timing import compile_timer
 
@@ -97,31 +97,31 @@ class SimulationResult:
                          f"got {state!r}")
 
     def as_dict(self) -> dict:
-        """Everything as JSON-ready plain data (see `jaxvalve.report.metrics_json`)."""
-        from .report import metrics_json
+        """Everything as JSON-ready plain data (see `jaxvalve.io.report.metrics_json`)."""
+        from .io.report import metrics_json
         return metrics_json(self)
 
     # plot helpers (matplotlib is imported lazily)
     def plot_valve(self, ax=None, **kw):
-        from .plots import plot_valve
+        from .io.plots import plot_valve
         return plot_valve(self, ax=ax, **kw)
 
     def plot_aortic_view(self, ax=None, **kw):
-        from .plots import plot_aortic_view
+        from .io.plots import plot_aortic_view
         return plot_aortic_view(self, ax=ax, **kw)
 
     def plot_profiles(self, ax=None, **kw):
-        from .plots import plot_profiles
+        from .io.plots import plot_profiles
         return plot_profiles(self, ax=ax, **kw)
 
     def plot_pair_heights(self, ax=None, **kw):
-        from .plots import plot_pair_heights
+        from .io.plots import plot_pair_heights
         return plot_pair_heights(self, ax=ax, **kw)
 
     def write(self, out_dir, figures: bool = True):
         """Write metrics.json, one .vtu per leaflet and (optionally) PNG figures into
         ``out_dir``; returns the list of paths written."""
-        from .report import write_outputs
+        from .io.report import write_outputs
         return write_outputs(self, out_dir, figures=figures)
 
 
@@ -163,7 +163,7 @@ def simulate(scene: Scene | None = None, *, progress: Callable[[str], None] | No
     (``leaflets_cross``, ``inverted_triangles``: `jaxvalve.valve.STATE_FAILURES`).
     A state that is not finite raises `ConvergenceError` either way (it cannot be
     measured).  valve: a prebuilt `Valve` for this scene's root and template (skips the
-    setup).  The closures are `jaxvalve.closure.close_valve`'s.
+    setup).  The closures are `jaxvalve.valve.closure.close_valve`'s.
     """
     scene = Scene() if scene is None else scene
     say = progress or _quiet

@@ -1,7 +1,7 @@
 """One scene's closures and smooth coaptation metrics as functions of theta = (r, a, b).
 
 `Evaluator(scene, objective)` owns the mesh, the valve, the differentiable design map
-(`jaxvalve.design`) and two compiled functions:
+(`jaxvalve.valve.design`) and two compiled functions:
 
 * ``forward(rab, warm)``: the closures the objective needs (3 mmHg for h_E, 80 mmHg for the
   other metrics; a closure no target needs is skipped), each warm-started from the
@@ -10,9 +10,9 @@
   with its partial derivatives at fixed states (one compiled program, `_terms`).
 * ``gradient(ev)``: the objective's value and its gradient with respect to (r, a, b).
   The equilibria enter through the implicit adjoint: one solve K^T mu = df/dx per
-  closure (`jaxvalve.adjoint.solve_lu`; `adjoint="jax"` uses `equilibrium.implicit_state`),
-  pulled back to (r, a, b) by `pullback` (`jaxvalve.adjoint.residual_vjp`).  It never re-runs or
-  unrolls the solver.
+  closure (`jaxvalve.solvers.adjoint.solve_lu`; `adjoint="jax"` uses
+  `equilibrium.implicit_state`), pulled back to (r, a, b) by `pullback`
+  (`jaxvalve.solvers.adjoint.residual_vjp`).  It never re-runs or unrolls the solver.
 
 Changing theta changes only traced values: nothing recompiles, unless the mapped mesh
 degrades (an angle below ``min_angle``), when the new template is meshed afresh (a new
@@ -27,17 +27,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxvalve import equilibrium
-from jaxvalve.closure import close_load, separated, swing_shut
+from jaxvalve.solvers import equilibrium
+from jaxvalve.valve.closure import close_load, separated, swing_shut
 from jaxvalve import valve as V
 from jaxvalve.coaptation import annulus_level
 from jaxvalve.coaptation.smooth import smooth_metrics, smooth_plan
-from jaxvalve.design import ValveDesign
+from jaxvalve.valve.design import ValveDesign
 from jaxvalve.errors import ConvergenceError, ParameterError
-from jaxvalve.leaflet_mesh import mesh_leaflet
+from jaxvalve.geometry.leaflet_mesh import mesh_leaflet
 from jaxvalve.quick_jit import quick_jit
-from jaxvalve.template import Template
-from jaxvalve.template_map import template_map
+from jaxvalve.geometry.template import Template
+from jaxvalve.geometry.template_map import template_map
 
 from .objective import Objective
 from .targets import METRICS
@@ -360,7 +360,7 @@ class Evaluator:
         program the adjoint solve compiled serves; only the template's part (reference
         nodes and sutured positions) compiles here.  params: the load's `Params` at
         (r, a, b) when the caller has them (the adjoint's), else built here."""
-        from jaxvalve.adjoint import residual_vjp
+        from jaxvalve.solvers.adjoint import residual_vjp
 
         if params is None:
             params = self.base[load].replace(ref=self._ref_jit(self.theta(rab)))
@@ -380,9 +380,9 @@ class Evaluator:
         """Derivatives of the smooth metrics at a converged evaluation: {metric: {param:
         d metric / d param}} for every metric of the closed loads, with param r, a, b (mm)
         and the material's moduli (e.g. E, nu for StVK; MPa^-1 for a modulus).  One LU
-        adjoint solve per metric (`jaxvalve.adjoint.solve_lu`); raises
+        adjoint solve per metric (`jaxvalve.solvers.adjoint.solve_lu`); raises
         `ConvergenceError` when ``ev`` did not converge or an adjoint solve failed."""
-        from jaxvalve.adjoint import solve_lu
+        from jaxvalve.solvers.adjoint import solve_lu
 
         if not ev.converged:
             raise ConvergenceError(f"no sensitivities at (r, a, b) = {tuple(ev.rab)}: "
@@ -414,11 +414,11 @@ class Evaluator:
         """(value, grad (3,), info) of the objective at a converged evaluation.
 
         adjoint 'lu': K^T mu = df/dx by GMRES preconditioned with a sparse LU of the
-        assembled stiffness (`jaxvalve.tangent`, host); 'jax': `equilibrium.implicit_state`
+        assembled stiffness (`jaxvalve.solvers.tangent`, host); 'jax': `equilibrium.implicit_state`
         (block-Jacobi GMRES inside JAX).  info: {'adjoint': [AdjointReport per closure]}.
         Raises `ConvergenceError` when ``ev`` did not converge (no adjoint of a
         non-equilibrium) or an adjoint solve missed its tolerance."""
-        from jaxvalve.adjoint import solve_lu
+        from jaxvalve.solvers.adjoint import solve_lu
 
         if not ev.converged:
             raise ConvergenceError(f"no gradient at (r, a, b) = {tuple(ev.rab)}: {ev.reason}")

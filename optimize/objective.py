@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxvalve.errors import ParameterError
-from jaxvalve.template import template_area
+from jaxvalve.geometry.template import template_area
 
 from .targets import DEFAULT_TARGETS, METRICS, Target
 

@@ -54,7 +54,7 @@ def read_checkpoint(out: Path) -> dict:
 
 def template_outline(r, a, b, alpha, n=120):
     """Closed outline (n, 2) mm of the template A-B-C-D-E-A."""
-    from jaxvalve.template import free_point, sutured_point
+    from jaxvalve.geometry.template import free_point, sutured_point
     t = np.linspace(0.0, 1.0, n)
     return np.concatenate([sutured_point(t, r, a, alpha), free_point(t[::-1], r, a, b, alpha)])
 
@@ -81,7 +81,7 @@ def figure(records: list, alpha: float, targets=(), plt=None):
 
     from .targets import METRICS
     if plt is None:
-        from jaxvalve.plots import _pyplot
+        from jaxvalve.io.plots import _pyplot
         plt = _pyplot()
     it = [r["iteration"] for r in records]
     names = [k[2:] for k in records[0] if k.startswith("m:") and k != "m:area"]

@@ -4,9 +4,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxvalve import adjoint, equilibrium, meshgen
-from jaxvalve.materials import Gent, MassSpring, NeoHookean, StVenantKirchhoff
-from jaxvalve.problem import Params, make_problem, mmhg
+from jaxvalve.solvers import adjoint, equilibrium
+
+from jaxvalve.geometry import meshgen
+from jaxvalve.mechanics.materials import Gent, MassSpring, NeoHookean, StVenantKirchhoff
+from jaxvalve.mechanics.problem import Params, make_problem, mmhg
 from jaxvalve.solvers import NewtonKrylov
 
 SOLVER = NewtonKrylov(rtol=1e-12)
@@ -130,9 +132,9 @@ def test_assembled_stiffness_is_the_exact_jacobian_without_contact(disk):
     Jacobian of the residual by autodiff, and the sparse LU adjoint then needs at most
     two GMRES iterations.  With the whole rim held, the follower load is conservative on
     the free dofs, so K is symmetric there although the pressure blocks are not."""
-    from jaxvalve.bending import Bending
-    from jaxvalve.adjoint import solve_lu
-    from jaxvalve.tangent import assemble
+    from jaxvalve.mechanics.bending import Bending
+    from jaxvalve.solvers.adjoint import solve_lu
+    from jaxvalve.solvers.tangent import assemble
 
     prob, ref, x0, fixed = disk
     rng = np.random.default_rng(4)
@@ -144,7 +146,7 @@ def test_assembled_stiffness_is_the_exact_jacobian_without_contact(disk):
     params = Params(ref=ref, material=StVenantKirchhoff(1.0, 0.45), thickness=0.3,
                     pressure=mmhg(80.0), bending=Bending(1.0))
     K = assemble(prob, params, x).toarray()
-    from jaxvalve import assembly
+    from jaxvalve.mechanics import assembly
     # jitted: op by op, the Jacobian took 13 s instead of 2 s
     J = jax.jit(jax.jacfwd(lambda y: assembly.residual(y, prob, params,
                                                        assembly.prepare(prob, params))))(x)

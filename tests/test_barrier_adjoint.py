@@ -1,4 +1,4 @@
-"""The adjoint of a barrier closure (`jaxvalve.adjoint.solve_lu` on a `BarrierPairs` list,
+"""The adjoint of a barrier closure (`jaxvalve.solvers.adjoint.solve_lu` on a `BarrierPairs` list,
 and `residual_vjp` with the collision weights as functions of the reference): derivatives
 of a function of the equilibrium with respect to the modulus and to the reference
 geometry match central differences of re-solved equilibria.
@@ -12,12 +12,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxvalve import adjoint, meshgen
-from jaxvalve.bending import Bending
+from jaxvalve.solvers import adjoint
+
+from jaxvalve.geometry import meshgen
+from jaxvalve.mechanics.bending import Bending
 from jaxvalve.contact.barrier import BarrierContact
 from jaxvalve.contact.ipc_pairs import barrier_topology, build_pairs
-from jaxvalve.materials import StVenantKirchhoff
-from jaxvalve.problem import Params, make_problem
+from jaxvalve.mechanics.materials import StVenantKirchhoff
+from jaxvalve.mechanics.problem import Params, make_problem
 from jaxvalve.solvers import RESULTS, BarrierNewton, solve_barrier
 
 R, GAP, P = 5.0, 0.3, 0.004        # mm, mm, MPa

@@ -17,11 +17,11 @@ from jaxvalve import batch as B
 from jaxvalve.batch import METRICS, BatchResult, simulate_batch, stack_materials
 from jaxvalve.cli import main
 from jaxvalve.errors import ConvergenceError, ParameterError
-from jaxvalve.materials import Gent, MassSpring, NeoHookean, StVenantKirchhoff
+from jaxvalve.mechanics.materials import Gent, MassSpring, NeoHookean, StVenantKirchhoff
 from jaxvalve.solvers import RESULTS
 
 #: the batched FIRE program's own mechanics (frozen members, step caps, recompiles): no
-#: barrier fallback for the members that stop at the cap (`jaxvalve.closure`; a batch
+#: barrier fallback for the members that stop at the cap (`jaxvalve.valve.closure`; a batch
 #: member closed by the fallback: tests/test_closure_driver.py)
 SCENE = Scene(h=2.0, model="stvk", max_steps=2000, fallback=False)
 E_FIRST = (1.0, 2.0, 3.0)   # E = 1.1-1.5 MPa end with leaflets crossing on this mesh
@@ -97,7 +97,7 @@ def test_unconverged_member_is_reported_with_its_residual(runs):
     row = second.rows()[2]
     assert row["converged"] is False and row["residual_closing"] == closing.residual
     assert row["result_closing"] == "max_steps_reached" and row["steps_closing"] == 2000
-    # and why it stopped (`jaxvalve.stall`): in the member's report, the error and the row
+    # and why it stopped (`jaxvalve.solvers.stall`): in the member's report, the error and the row
     assert closing.cause and closing.cause in msg and row["cause_closing"] == closing.cause
     assert he.cause is None and row["cause_he"] == ""
     # its (finite, unconverged) state is still measured, as simulate(throw=False) does

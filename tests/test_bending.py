@@ -1,4 +1,4 @@
-"""Discrete hinge bending (jaxvalve.bending): topology, invariances, the plate limit on a
+"""Discrete hinge bending (jaxvalve.mechanics.bending): topology, invariances, the plate limit on a
 cylinder, an exact fold, forces vs finite differences, the plate modulus, validation and
 the wiring into the membrane assembly."""
 import numpy as np
@@ -6,11 +6,11 @@ import pytest
 import jax
 import jax.numpy as jnp
 
-from jaxvalve import assembly, bending as B
+from jaxvalve.mechanics import assembly, bending as B
 from jaxvalve.errors import ParameterError
-from jaxvalve.materials import Gent, MassSpring, NeoHookean, StVenantKirchhoff
-from jaxvalve.meshgen import disk, rectangle
-from jaxvalve.problem import Params, make_problem, validate_params
+from jaxvalve.mechanics.materials import Gent, MassSpring, NeoHookean, StVenantKirchhoff
+from jaxvalve.geometry.meshgen import disk, rectangle
+from jaxvalve.mechanics.problem import Params, make_problem, validate_params
 
 _energy = jax.jit(B.bending_energy)
 _grad = jax.jit(jax.grad(B.bending_energy))
@@ -133,8 +133,8 @@ def test_cylinder_structured_mesh_tends_to_plate_energy_and_scales_as_inverse_r_
 
 
 def test_cylinder_delaunay_leaflet_mesh_tends_to_plate_energy():
-    from jaxvalve.leaflet_mesh import mesh_leaflet
-    from jaxvalve.template import Template
+    from jaxvalve.geometry.leaflet_mesh import mesh_leaflet
+    from jaxvalve.geometry.template import Template
     lm = mesh_leaflet(Template(12, 7.1, 15), h=0.5)
     p, t = np.asarray(lm.points), np.asarray(lm.triangles)
     h, w = _setup(p, t)

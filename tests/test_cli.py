@@ -4,10 +4,12 @@ import json
 import jax.numpy as jnp
 import pytest
 
-from jaxvalve import equilibrium, meshgen
+from jaxvalve.solvers import equilibrium
+
+from jaxvalve.geometry import meshgen
 from jaxvalve.cli import main
-from jaxvalve.materials import NeoHookean
-from jaxvalve.problem import Params, make_problem, mmhg
+from jaxvalve.mechanics.materials import NeoHookean
+from jaxvalve.mechanics.problem import Params, make_problem, mmhg
 from jaxvalve.solvers import FIRE
 
 

@@ -1,4 +1,4 @@
-"""The one closure driver (`jaxvalve.closure`): every caller's loads, continuation, state
+"""The one closure driver (`jaxvalve.valve.closure`): every caller's loads, continuation, state
 checks and reports go through it.
 
 The driver's logic is tested with a scripted solver in place of `valve.close` (a valve
@@ -11,7 +11,9 @@ import types
 import numpy as np
 import pytest
 
-from jaxvalve import Scene, closure, simulate, simulate_batch
+from jaxvalve import Scene, simulate, simulate_batch
+
+from jaxvalve.valve import closure
 import stress_suite as S
 from jaxvalve import valve as V
 from jaxvalve.simulation import build_scene_valve
@@ -140,7 +142,7 @@ def test_simulate_batch_and_stress_share_the_driver_past_a_limit_point():
     """Neo-Hookean E = 0.05 MPa at 80 mmHg on the stress suite's template a (its inflation
     limit is near 11 mmHg): `simulate`, a batch member and the stress suite all report
     ``limit_point`` at the same pressure, with the same state."""
-    from jaxvalve.leaflet_mesh import mesh_leaflet
+    from jaxvalve.geometry.leaflet_mesh import mesh_leaflet
     tpls = S.paper_templates()
     tpl = tpls["a"][0]
     v = S.make_valve(tpl, S.STRESS_H, S.mapped_mesh(mesh_leaflet(tpls["b"][0], S.STRESS_H),

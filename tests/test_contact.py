@@ -629,7 +629,7 @@ def test_mesh_skin_keeps_the_candidates_per_node_fixed_under_refinement():
     per node of two sheets 0.1 mm apart grow only through the fixed gap g0 = 0.2 mm as the
     mesh is refined (a broad phase near linear in the triangles); with the fixed 1 mm skin
     they grow like 1 / h^2."""
-    from jaxvalve.equilibrium import DEFAULT_SKIN, mesh_skin
+    from jaxvalve.solvers.equilibrium import DEFAULT_SKIN, mesh_skin
 
     gap = 0.2
     per_node, per_node_fixed, skins = [], [], []

@@ -1,25 +1,25 @@
 """The differentiable chain theta = (r, a, b, alpha) -> reference mesh, suturing paths,
-sutured positions, equilibrium and smooth coaptation metrics (`jaxvalve.design`)."""
+sutured positions, equilibrium and smooth coaptation metrics (`jaxvalve.valve.design`)."""
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxvalve import equilibrium
+from jaxvalve.solvers import equilibrium
 from jaxvalve import valve as V
 from jaxvalve.coaptation import annulus_level
 from jaxvalve.coaptation.smooth import smooth_metrics, smooth_plan
 from jaxvalve.contact.neighbours import whole_lists
-from jaxvalve.design import BenchmarkPaths, FixedPaths, ValveDesign
+from jaxvalve.valve.design import BenchmarkPaths, FixedPaths, ValveDesign
 from jaxvalve.errors import MeshError, ParameterError
-from jaxvalve.leaflet_mesh import mesh_leaflet
-from jaxvalve.leaflet_mesh import _edge_counts
-from jaxvalve.placement import along_path
-from jaxvalve.root import benchmark_root
+from jaxvalve.geometry.leaflet_mesh import mesh_leaflet
+from jaxvalve.geometry.leaflet_mesh import _edge_counts
+from jaxvalve.valve.placement import along_path
+from jaxvalve.geometry.root import benchmark_root
 from jaxvalve.scene import Scene
 from jaxvalve.solvers import FIRE
-from jaxvalve.template import Template
-from jaxvalve.template_map import template_map
+from jaxvalve.geometry.template import Template
+from jaxvalve.geometry.template_map import template_map
 
 BASE = (12.0, 7.1, 15.0, 160.0)
 

@@ -6,9 +6,11 @@ import numpy as np
 import pytest
 from jax.test_util import check_grads
 
-from jaxvalve import assembly, meshgen
-from jaxvalve.materials import Gent, MassSpring, NeoHookean, StVenantKirchhoff
-from jaxvalve.problem import Params, make_problem
+from jaxvalve.mechanics import assembly
+
+from jaxvalve.geometry import meshgen
+from jaxvalve.mechanics.materials import Gent, MassSpring, NeoHookean, StVenantKirchhoff
+from jaxvalve.mechanics.problem import Params, make_problem
 
 H = 0.3
 MODELS = {

@@ -1,4 +1,4 @@
-"""The HTML report (`jaxvalve.html_report`): what it holds, that it needs no network, and,
+"""The HTML report (`jaxvalve.io.html_report`): what it holds, that it needs no network, and,
 in a real headless Chromium, that it loads without script errors and draws the valve.
 
 Chromium comes from the system's packages (`.ci/run` installs Debian's ``chromium``);
@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from jaxvalve import Scene, simulate
-from jaxvalve.html_report import METRICS, html_report, write_html_report
+from jaxvalve.io.html_report import METRICS, html_report, write_html_report
 
 FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
          "--disable-background-networking", "--disable-component-update", "--disable-sync",

@@ -3,10 +3,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxvalve import equilibrium, meshgen
+from jaxvalve.solvers import equilibrium
+
+from jaxvalve.geometry import meshgen
 from jaxvalve.errors import MeshError, ParameterError
-from jaxvalve.materials import Gent, MassSpring, NeoHookean, StVenantKirchhoff
-from jaxvalve.problem import Params, make_problem, validate_params
+from jaxvalve.mechanics.materials import Gent, MassSpring, NeoHookean, StVenantKirchhoff
+from jaxvalve.mechanics.problem import Params, make_problem, validate_params
 from jaxvalve.solvers import FIRE, FixedPoint, NewtonKrylov
 from jaxvalve.solvers.barrier_newton import BarrierNewton
 from jaxvalve.solvers.predictor import BulgePredictor

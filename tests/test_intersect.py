@@ -1,11 +1,11 @@
-"""Tests for jaxvalve.intersect: exact triangle-triangle test and leaflet checks."""
+"""Tests for jaxvalve.valve.intersect: exact triangle-triangle test and leaflet checks."""
 import itertools
 
 import numpy as np
 import pytest
 
 from jaxvalve.errors import MeshError
-from jaxvalve.intersect import (candidate_triangle_pairs, leaflets_intersect,
+from jaxvalve.valve.intersect import (candidate_triangle_pairs, leaflets_intersect,
                                 self_intersections, triangles_intersect)
 
 A = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])

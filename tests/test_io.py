@@ -7,7 +7,7 @@ import pytest
 from jaxvalve.errors import JaxvalveError, MeshError, ParameterError
 from jaxvalve.io import (LandmarksFileError, SurfaceFileError, read_landmarks, read_root,
                          read_surface, write_landmarks, write_root, write_surface)
-from jaxvalve.root import benchmark_root
+from jaxvalve.geometry.root import benchmark_root
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,4 @@
-"""Continuation in pressure and the limit point (`jaxvalve.continuation`).
+"""Continuation in pressure and the limit point (`jaxvalve.solvers.continuation`).
 
 An inflated neo-Hookean sphere (R, H, mu) has an exact pressure-stretch curve,
 P = 2 mu H / R (1/lambda - 1/lambda^7), with a maximum at lambda = 7^(1/6): above it no
@@ -12,12 +12,12 @@ import pytest
 import jax.numpy as jnp
 
 import analytic
-from jaxvalve import meshgen
-from jaxvalve.continuation import Ramp, ramp
-from jaxvalve.equilibrium import solve
+from jaxvalve.geometry import meshgen
+from jaxvalve.solvers.continuation import Ramp, ramp
+from jaxvalve.solvers.equilibrium import solve
 from jaxvalve.errors import ParameterError
-from jaxvalve.materials import NeoHookean
-from jaxvalve.problem import Params, make_problem
+from jaxvalve.mechanics.materials import NeoHookean
+from jaxvalve.mechanics.problem import Params, make_problem
 from jaxvalve.solvers import FIRE, RESULTS
 
 R, H, MU = 5.0, 0.3, 0.1
@@ -183,7 +183,7 @@ def test_a_ramp_that_stalls_is_reported_as_stagnation_never_as_a_limit_point():
 def test_a_solver_may_declare_its_step_cap_a_load_step_too_long():
     """The barrier Newton declares `max_steps_reached` a step too long (cut_on); FIRE
     declares nothing (neither its cap nor its stagnation), so its cap ends the ramp."""
-    from jaxvalve.continuation import CUT_ON, cut_on
+    from jaxvalve.solvers.continuation import CUT_ON, cut_on
     from jaxvalve.solvers import BarrierNewton
 
     class Capped(_Stalls):
@@ -248,7 +248,7 @@ def test_solves_that_stall_just_past_a_fold_under_a_runaway_end_at_a_limit_point
     pressure that ran away, are a limit point, bracketed like one.  Once a solve has run
     away the ramp's step budget no longer ends it (it only narrows a bracket then).
     Without a runaway the same stalls are reported as they are."""
-    from jaxvalve.continuation import cut_on
+    from jaxvalve.solvers.continuation import cut_on
     from jaxvalve.solvers import BarrierNewton
     cut = cut_on(BarrierNewton())
     s = _Fold()

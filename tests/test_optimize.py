@@ -10,8 +10,8 @@ import pytest
 from jaxvalve import Scene
 from jaxvalve.cli import main
 from jaxvalve.errors import ParameterError
-from jaxvalve.materials import NeoHookean
-from jaxvalve.template import Template, template_area
+from jaxvalve.mechanics.materials import NeoHookean
+from jaxvalve.geometry.template import Template, template_area
 from optimize import (Evaluator, Objective, Target, optimize_template, parse_target,
                       targets_from_dict)
 from optimize.objective import chord
@@ -277,7 +277,7 @@ def test_cli_exits_3_when_the_final_check_disagrees(monkeypatch, tmp_path, capsy
 def test_a_closure_stopped_at_its_step_cap_names_the_stall_probes_verdict(evaluator,
                                                                           monkeypatch):
     """The evaluator reports why a closure stopped at its cap, as `simulate` does
-    (`jaxvalve.stall`): here 20 steps from the open valve, far from equilibrium on a
+    (`jaxvalve.solvers.stall`): here 20 steps from the open valve, far from equilibrium on a
     continuous force, so the verdict is a slow solve, not a jump."""
     monkeypatch.setattr(evaluator, "scene", evaluator.scene.replace(max_steps=20))
     ev = evaluator.forward(BASE)

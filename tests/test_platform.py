@@ -13,9 +13,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxvalve import assembly, meshgen, xla_setup
-from jaxvalve.materials import Gent, MassSpring, NeoHookean, StVenantKirchhoff
-from jaxvalve.problem import Params, make_problem, mmhg
+from jaxvalve.mechanics import assembly
+
+from jaxvalve.geometry import meshgen
+
+from jaxvalve import xla_setup
+from jaxvalve.mechanics.materials import Gent, MassSpring, NeoHookean, StVenantKirchhoff
+from jaxvalve.mechanics.problem import Params, make_problem, mmhg
 
 
 def test_installed_jax_is_not_a_known_miscompiling_release():

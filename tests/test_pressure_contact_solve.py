@@ -3,10 +3,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxvalve import assembly, equilibrium, meshgen
+from jaxvalve.mechanics import assembly
+
+from jaxvalve.solvers import equilibrium
+
+from jaxvalve.geometry import meshgen
 from jaxvalve.contact import SmoothContact
-from jaxvalve.materials import NeoHookean
-from jaxvalve.problem import Params, make_problem, mmhg
+from jaxvalve.mechanics.materials import NeoHookean
+from jaxvalve.mechanics.problem import Params, make_problem, mmhg
 from jaxvalve.solvers import FIRE
 
 

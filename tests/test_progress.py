@@ -6,9 +6,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxvalve import equilibrium, meshgen, progress
-from jaxvalve.materials import StVenantKirchhoff
-from jaxvalve.problem import Params, make_problem, mmhg
+from jaxvalve.solvers import equilibrium
+
+from jaxvalve.geometry import meshgen
+
+from jaxvalve import progress
+from jaxvalve.mechanics.materials import StVenantKirchhoff
+from jaxvalve.mechanics.problem import Params, make_problem, mmhg
 from jaxvalve.solvers import FIRE
 
 

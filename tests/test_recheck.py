@@ -8,10 +8,12 @@ import logging
 import jax.numpy as jnp
 import pytest
 
-from jaxvalve import equilibrium, meshgen
+from jaxvalve.solvers import equilibrium
+
+from jaxvalve.geometry import meshgen
 from jaxvalve.errors import ConvergenceError
-from jaxvalve.materials import Gent
-from jaxvalve.problem import Params, make_problem, mmhg
+from jaxvalve.mechanics.materials import Gent
+from jaxvalve.mechanics.problem import Params, make_problem, mmhg
 from jaxvalve.solvers import FIRE, RESULTS
 
 #: how many times each lying solver class was traced (a Python side effect of tracing)

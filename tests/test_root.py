@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 
 from jaxvalve.errors import JaxvalveError, MeshError, ParameterError
-from jaxvalve.mesh import validate_mesh
-from jaxvalve.root import (BENCHMARK_HEIGHT_RANGE, AorticRoot, benchmark_length_range,
+from jaxvalve.geometry.mesh import validate_mesh
+from jaxvalve.geometry.root import (BENCHMARK_HEIGHT_RANGE, AorticRoot, benchmark_length_range,
                            benchmark_path_length, benchmark_root, distance_to_surface)
 
 RA, RC = 12.0, 13.0  # default annulus / STJ radii

@@ -2,9 +2,9 @@
 import numpy as np
 import pytest
 
-from jaxvalve import materials as m
+from jaxvalve.mechanics import materials as m
 from jaxvalve.errors import ParameterError
-from jaxvalve.leaflet_mesh import mesh_leaflet
+from jaxvalve.geometry.leaflet_mesh import mesh_leaflet
 from jaxvalve.scene import BENCHMARK_H, BENCHMARK_TEMPLATE, Scene
 
 

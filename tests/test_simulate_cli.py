@@ -15,7 +15,7 @@ import pytest
 
 import jaxvalve
 from jaxvalve.cli import main
-from jaxvalve.report import metrics_json, nodal_average, principal_stretches
+from jaxvalve.io.report import metrics_json, nodal_average, principal_stretches
 from jaxvalve.scene import Scene
 import jaxvalve.simulation as sim_mod
 from jaxvalve import progress
@@ -122,7 +122,7 @@ def test_metrics_json_round_trips_and_matches_the_result(run):
         assert d["result"] == rep.result == "max_steps_reached"
         assert d["residual"] == pytest.approx(rep.residual)
         # stopped at the step cap mid-swing: the force is continuous, the solve was cut
-        # short (`jaxvalve.stall`); the cause is in the report, its JSON and status line
+        # short (`jaxvalve.solvers.stall`); the cause is in the report, its JSON and status line
         assert d["cause"] == rep.cause and "continuous" in rep.cause
         assert rep.cause in d["status"]
         for k in ("wall_s", "compile_s", "solve_s"):
@@ -214,7 +214,7 @@ def test_aortic_view_looks_down_the_axis_with_the_zone_coloured_by_gap(run):
     import dataclasses
     from types import SimpleNamespace
 
-    from jaxvalve.plots import _zone_faces, aortic_frame
+    from jaxvalve.io.plots import _zone_faces, aortic_frame
     _, result, _, _, _ = run
     # this short run is still open: give the nodes nearest the aorta a gap below g_c, so
     # that the figure has a zone to colour (the gap 0.1-0.4 mm, the others far apart)
@@ -353,7 +353,7 @@ def test_coinciding_profiles_are_drawn_once_and_said_to_coincide(run):
     label says so, and three distinct ones as three."""
     import dataclasses
     import matplotlib.pyplot as plt
-    from jaxvalve.plots import COINCIDE_MM, plot_profiles, profile_distance
+    from jaxvalve.io.plots import COINCIDE_MM, plot_profiles, profile_distance
     _, result, _, _, _ = run
     seg = np.array([[[0.0, 0.0], [1.0, 0.0]], [[1.0, 0.0], [2.0, 1.0]]])
     assert profile_distance([seg, seg, seg]) == 0.0

@@ -5,11 +5,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxvalve import equilibrium, meshgen
-from jaxvalve.checks import gent_invariant
+from jaxvalve.solvers import equilibrium
+
+from jaxvalve.geometry import meshgen
+from jaxvalve.valve.checks import gent_invariant
 from jaxvalve.errors import ConvergenceError
-from jaxvalve.materials import Gent, MassSpring, NeoHookean, StVenantKirchhoff
-from jaxvalve.problem import Params, make_problem, mmhg
+from jaxvalve.mechanics.materials import Gent, MassSpring, NeoHookean, StVenantKirchhoff
+from jaxvalve.mechanics.problem import Params, make_problem, mmhg
 from jaxvalve.solvers import FIRE, RESULTS, FixedPoint, NewtonKrylov
 
 
@@ -24,7 +26,7 @@ def _op_by_op(prob, params, x):
     """The relative residual ||F_free|| / ||F_pressure|| and the stretch check of the state
     x, evaluated op by op (no jit): a check of a solve's result that does not go through
     the solver's compiled loop."""
-    from jaxvalve import assembly
+    from jaxvalve.mechanics import assembly
     with jax.disable_jit():
         r = assembly.prepare(prob, params)
         F = assembly.residual(x, prob, params, r)
@@ -57,7 +59,7 @@ def test_all_solvers_reach_the_same_equilibrium(disk, mat):
     assert float(x[0, 2]) > 0.5 and float(x[0, 2]) >= float(jnp.max(x[:, 2])) - 1e-12
     np.testing.assert_allclose(x[~np.asarray(prob.free)], x0[~np.asarray(prob.free)])
     # global equilibrium: the clamp reactions balance the total pressure load on free nodes
-    from jaxvalve import assembly
+    from jaxvalve.mechanics import assembly
     r = assembly.prepare(prob, params)
     f_e = -jax.grad(assembly.elastic_energy)(x, prob, params, r)
     f_p = assembly.pressure_force(x, prob.triangles, params.pressure)
@@ -125,7 +127,7 @@ def test_fire_refuses_steps_past_the_gent_limit(disk, Jm, P):
     limit where an equilibrium lies.  At 2000 mmHg it matches Newton; at 20000 mmHg (Newton
     stagnates there) the state is admissible, with the bulge higher than at 2000 mmHg and
     the triangles within 10 % of the limit."""
-    from jaxvalve import assembly
+    from jaxvalve.mechanics import assembly
     prob, ref, x0 = disk
     params = _params(ref, Gent(mu=1 / 3, Jm=Jm), P=P)
     fire = equilibrium.solve(prob, params, x0, FIRE(rtol=1e-8), throw=False)
@@ -154,7 +156,7 @@ def test_newton_starts_a_gent_membrane_whose_trial_bulges_pass_the_limit(disk, J
     bulge past the limit, reported as stretch_limit (Jm = 0.3).)  The solve converges
     inside the limit to the equilibrium FIRE finds (FIRE refuses steps past the limit), and
     with more pressure the bulge is higher."""
-    from jaxvalve import assembly
+    from jaxvalve.mechanics import assembly
     prob, ref, x0 = disk
     params = _params(ref, Gent(mu=1 / 3, Jm=Jm), P=P)
     newton = equilibrium.solve(prob, params, x0, NewtonKrylov(rtol=1e-8), throw=False)
@@ -212,7 +214,7 @@ def test_fire_null_first_step_gives_the_initial_force_and_does_not_move(disk):
     assert int(again.stats.force_evals) == 1
     np.testing.assert_array_equal(again.x, x_eq)
     # P = 0 from the loaded state: relaxes back to flat, residual relative to ||F(x_eq)||
-    from jaxvalve import assembly
+    from jaxvalve.mechanics import assembly
     p0 = _params(ref, P=0.0)
     flat = equilibrium.solve(prob, p0, x_eq, FIRE(rtol=1e-6))
     assert flat.converged and int(flat.stats.steps) > 10

@@ -3,7 +3,7 @@ the free dofs, checked against a dense sum written out independently."""
 import numpy as np
 import pytest
 
-from jaxvalve.tangent import BlockAssembler
+from jaxvalve.solvers.tangent import BlockAssembler
 
 
 def _dense(blocks, nodes, free):

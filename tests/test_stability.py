@@ -5,12 +5,12 @@ solve pushes the compressed disk off its flat state and ends at a buckled, stabl
 import numpy as np
 import pytest
 
-from jaxvalve import meshgen
-from jaxvalve.bending import Bending
+from jaxvalve.geometry import meshgen
+from jaxvalve.mechanics.bending import Bending
 from jaxvalve.contact.barrier import BarrierContact
 from jaxvalve.contact.ipc_pairs import barrier_topology, build_pairs
-from jaxvalve.materials import StVenantKirchhoff
-from jaxvalve.problem import Params, make_problem
+from jaxvalve.mechanics.materials import StVenantKirchhoff
+from jaxvalve.mechanics.problem import Params, make_problem
 from jaxvalve.solvers import RESULTS, BarrierNewton, solve_barrier
 from jaxvalve.solvers.barrier_newton import _Model, lowest_modes
 

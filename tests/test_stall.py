@@ -1,4 +1,4 @@
-"""`jaxvalve.stall.probe`: a jump of the force is told apart from a slow solve.
+"""`jaxvalve.solvers.stall.probe`: a jump of the force is told apart from a slow solve.
 
 The jump is the one that stalls the soft Table 4 valves: under the one-sided contact law
 a node behind another sheet's face, further than g0, is penalised while it projects into
@@ -6,10 +6,10 @@ the face and not once its projection leaves it."""
 import numpy as np
 import pytest
 
-from jaxvalve import stall
+from jaxvalve.solvers import stall
 from jaxvalve.contact import SmoothContact
-from jaxvalve.materials import MassSpring
-from jaxvalve.problem import Params, make_problem
+from jaxvalve.mechanics.materials import MassSpring
+from jaxvalve.mechanics.problem import Params, make_problem
 
 
 def _two_sheets(one_sided, eps=1e-9):
@@ -52,9 +52,10 @@ def test_a_residual_below_the_float32_rounding_floor_is_named_as_such():
     """An equilibrium solved to 1e-11 in float64: in float32 its residual force lies far
     below the rounding floor (eps32 times the cancelling terms), in float64 above its own."""
     import jax.numpy as jnp
-    from jaxvalve import equilibrium, meshgen
-    from jaxvalve.materials import NeoHookean
-    from jaxvalve.problem import mmhg
+    from jaxvalve.solvers import equilibrium
+    from jaxvalve.geometry import meshgen
+    from jaxvalve.mechanics.materials import NeoHookean
+    from jaxvalve.mechanics.problem import mmhg
     from jaxvalve.solvers import NewtonKrylov
     p, t, b = meshgen.disk(5.0, 2)
     prob, ref = make_problem(p, t, fixed=b)

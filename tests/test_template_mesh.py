@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from jaxvalve.errors import ParameterError
-from jaxvalve.leaflet_mesh import mesh_leaflet, mesh_quality
-from jaxvalve.template import PAPER_TEMPLATES, Template, free_point, sutured_point
+from jaxvalve.geometry.leaflet_mesh import mesh_leaflet, mesh_quality
+from jaxvalve.geometry.template import PAPER_TEMPLATES, Template, free_point, sutured_point
 
 TPL = Template(r=12.0, a=6.7, b=15.0)
 

@@ -1,7 +1,7 @@
 """The optimiser's figure: one panel per unit, integer iteration ticks, labelled targets."""
 import numpy as np
 
-from jaxvalve.plots import _pyplot
+from jaxvalve.io.plots import _pyplot
 from optimize.targets import parse_target
 from optimize.trajectory import figure
 

@@ -35,10 +35,10 @@ import pytest
 import jax.numpy as jnp
 
 import analytic
-from jaxvalve import meshgen
-from jaxvalve.equilibrium import solve
-from jaxvalve.materials import Gent, NeoHookean, StVenantKirchhoff
-from jaxvalve.problem import Params, make_problem
+from jaxvalve.geometry import meshgen
+from jaxvalve.solvers.equilibrium import solve
+from jaxvalve.mechanics.materials import Gent, NeoHookean, StVenantKirchhoff
+from jaxvalve.mechanics.problem import Params, make_problem
 from jaxvalve.solvers import FIRE, NewtonKrylov
 
 # one solver object per problem family, so that jit caches are shared between loads.

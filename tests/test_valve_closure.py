@@ -9,10 +9,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxvalve import Scene, assembly, simulate
+from jaxvalve import Scene, simulate
+
+from jaxvalve.mechanics import assembly
 from jaxvalve import valve as V
-from jaxvalve.leaflet_mesh import mesh_leaflet
-from jaxvalve.problem import mmhg
+from jaxvalve.geometry.leaflet_mesh import mesh_leaflet
+from jaxvalve.mechanics.problem import mmhg
 
 H = 1.5
 
@@ -36,7 +38,7 @@ def test_closure_is_an_equilibrium(closed):
                           sc.bending_law())
         params = jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float64), params)
         ref = assembly.prepare(v.problem, params)
-        from jaxvalve.equilibrium import init_pairs
+        from jaxvalve.solvers.equilibrium import init_pairs
         nb = init_pairs(params.contact, v.problem, jnp.asarray(x))
         R = jax.jit(assembly.residual)(jnp.asarray(x), v.problem, params, ref, nb)
         scale = assembly.pressure_scale(jnp.asarray(x), v.problem, params)

@@ -3,11 +3,11 @@ import numpy as np
 import pytest
 
 from jaxvalve import valve as V
-from jaxvalve.leaflet_mesh import mesh_leaflet
-from jaxvalve.materials import StVenantKirchhoff
-from jaxvalve.placement import along_polyline
-from jaxvalve.root import benchmark_root
-from jaxvalve.template import Template
+from jaxvalve.geometry.leaflet_mesh import mesh_leaflet
+from jaxvalve.mechanics.materials import StVenantKirchhoff
+from jaxvalve.valve.placement import along_polyline
+from jaxvalve.geometry.root import benchmark_root
+from jaxvalve.geometry.template import Template
 
 TPL = Template(r=12.0, a=7.1, b=15.0)
 
@@ -86,8 +86,8 @@ def test_placement_is_equivariant_under_rigid_motion(valve):
 def test_start_is_fold_free_and_leaflets_do_not_cross(valve):
     """The harmonic start: every triangle keeps the orientation of its leaflet's plane
     (no flipped triangle), areas stay positive, and no two leaflets intersect."""
-    from jaxvalve.intersect import leaflets_intersect
-    from jaxvalve.placement import leaflet_frame
+    from jaxvalve.valve.intersect import leaflets_intersect
+    from jaxvalve.valve.placement import leaflet_frame
 
     x, tri, root = valve.x_start, valve.triangles, valve.root
     n = _normals(x, tri)

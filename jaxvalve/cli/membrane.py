@@ -24,7 +24,7 @@ def add_parser(sub):
 
 
 def _material(args):
-    from .. import materials as m
+    from ..mechanics import materials as m
     if args.model == "stvk":
         return m.StVenantKirchhoff(E=args.E, nu=args.nu)
     if args.model == "neo-hookean":
@@ -39,8 +39,9 @@ def run(args) -> int:
     jax.config.update("jax_enable_x64", True)
     import jax.numpy as jnp
 
-    from .. import equilibrium, meshgen
-    from ..problem import Params, make_problem, mmhg
+    from ..solvers import equilibrium
+    from ..geometry import meshgen
+    from ..mechanics.problem import Params, make_problem, mmhg
     from ..solvers import FIRE, FixedPoint, NewtonKrylov
 
     p, t, b = meshgen.disk(args.radius, args.rings)

@@ -110,7 +110,7 @@ def run(args) -> int:
         print(f"[jaxvalve] {msg}", flush=True)
 
     from optimize.run import OPTIMIZE_MAX_STEPS, OPTIMIZE_RTOL
-    from ..io import check_out_dir
+    from ..io.files import check_out_dir
     from ..progress import Heartbeat
     scene = make_scene(args)
     check_out_dir(args.out)                 # before any closure: a bad --out loses nothing

@@ -149,9 +149,9 @@ def _table(result):
 
 
 def run(args) -> int:
-    from ..report import metrics_json, write_outputs
+    from ..io.report import metrics_json, write_outputs
     from ..simulation import simulate
-    from ..io import check_out_dir
+    from ..io.files import check_out_dir
     from ..progress import Heartbeat
 
     stream = sys.stderr if args.json else sys.stdout

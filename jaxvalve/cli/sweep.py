@@ -120,7 +120,7 @@ def _check(args):
 def table_members(args):
     """[(model, [(labels, material), ...]), ...]: the batches of the sweep, one per model.
     labels: the grid coordinates of the member (E1, E2 or model, E)."""
-    from .. import materials as M
+    from ..mechanics import materials as M
     if args.table == 4:
         e1s, e2s = args.E1 or TABLE4_E1, args.E2 or TABLE4_E2
         return [("mass-spring", [(dict(E1=e1, E2=e2), M.MassSpring(E1=e1, E2=e2, E3=args.E3))
@@ -250,8 +250,8 @@ def _fmt(v):
 def _run_groups(args, scene, groups, total, hb):
     """Close every member of every (model, members) group; the CSV rows, in order."""
     from ..batch import simulate_batch
-    from ..leaflet_mesh import mesh_leaflet
-    from .. import valve as V
+    from ..geometry.leaflet_mesh import mesh_leaflet
+    from ..valve import model as V
 
     say = hb.say
     say(f"table {args.table}: {total} members in {len(groups)} batch"
@@ -279,7 +279,7 @@ def _run_groups(args, scene, groups, total, hb):
 def run(args) -> int:
     from ..errors import JaxvalveError
     from ..scene import Scene
-    from ..io import check_out_dir
+    from ..io.files import check_out_dir
     from ..progress import Heartbeat
 
     def say(msg):

@@ -90,7 +90,7 @@ class CoaptationResult:
 
     def as_dict(self, include_gap: bool = False) -> dict:
         """Plain floats / ints / lists (JSON-ready; NaN -> None).  `gap` only on request."""
-        from ..jsonable import plain
+        from ..io.jsonable import plain
         out = {}
         for f in dataclasses.fields(self):
             if f.name == "gap" and not include_gap:

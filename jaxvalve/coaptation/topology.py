@@ -8,7 +8,7 @@ import math
 import numpy as np
 
 from ..errors import MeshError, ParameterError
-from ..mesh import edge_lengths_np
+from ..geometry.mesh import edge_lengths_np
 
 
 @dataclasses.dataclass(frozen=True)

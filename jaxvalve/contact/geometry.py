@@ -267,7 +267,7 @@ def signed_plane_distance(p, a, b, c):
 # ----------------------------------------------------------------- NumPy reference (tests)
 def point_triangle_distance_np(p, a, b, c):
     """Distances (K,) mm from points p (K, 3) to the closed triangles a, b, c (K, 3): the
-    project's one NumPy point-triangle distance (the wall check of `jaxvalve.root`, and
+    project's one NumPy point-triangle distance (the wall check of `jaxvalve.geometry.root`, and
     the tests' reference for the JAX distances).  The distance to the plane where the
     point's projection falls inside the triangle, else to the nearest edge; a degenerate
     triangle (zero area: a segment or a point) is measured by its edges alone.  Written

@@ -19,7 +19,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..errors import ParameterError
-from ..mesh import unique_edges
+from ..geometry.mesh import unique_edges
 from .barrier import collision_weights
 from .ipc_distance import (mollifier_threshold, point_triangle_distance2_np,
                            segment_distance2_np)

@@ -194,7 +194,7 @@ _ONE_PREFIX = threading.local()
 def whole_lists():
     """While tracing inside this context, `bucket_sizes` gives the whole list only: one
     branch instead of a `lax.switch` over prefixes.  For programs run at one state many
-    times, such as the adjoint's products at a closed valve (`jaxvalve.tangent`), where the
+    times, such as the adjoint's products at a closed valve (`jaxvalve.solvers.tangent`), where the
     longest prefix is in use anyway and the other branches only cost compilation."""
     old = getattr(_ONE_PREFIX, "on", False)
     _ONE_PREFIX.on = True

@@ -22,14 +22,14 @@ contact (`jaxvalve.contact.ccd`), so the leaflets can never cross.  Each step:
    conservative energy (strain, bending, barrier) and W the work of the follower pressure
    along the step, exact by Simpson's rule (the load is quadratic in the positions).  A
    trial state must also be admissible: finite, inside the material's stretch limit, and
-   without an edge folded past 150 degrees (the bound of `jaxvalve.checks`: without it,
+   without an edge folded past 150 degrees (the bound of `jaxvalve.valve.checks`: without it,
    long steps on coarse or soft leaflets jumped into creased states, a discretisation
    artefact the state check rejects).
 4. Stop when ||F_free|| / ||F_pressure|| < rtol (with ``max_pushes`` > 0, at a stable
    state: `lowest_modes`; an unstable equilibrium is pushed off along its mode, at most
    ``max_pushes`` times, then `RESULTS.unstable`), or with `RESULTS.escaped` once a node has
    moved farther than the start state's diameter (past a limit point the merit has no
-   minimum and each step moves ``dx_max``; `jaxvalve.continuation` takes it from there).
+   minimum and each step moves ``dx_max``; `jaxvalve.solvers.continuation` takes it from there).
 
 The solve runs on the host: a Python loop around jitted kernels (energies, forces, element
 and pair Hessians), each compiled once per mesh: pair lists are evaluated in chunks of
@@ -47,12 +47,13 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from .. import assembly, tangent
+from ..mechanics import assembly
+from . import tangent
 from .. import progress as _progress
 from ..contact import ccd
 from ..contact.barrier import ee_energies, pt_energies
 from ..contact.ipc_pairs import BarrierTopology, build_pairs, pair_distances2
-from ..checks import FOLD_DEG
+from ..valve.checks import FOLD_DEG
 from ..errors import ParameterError
 from .base import RESULTS, Solution, Stats, check_settings, escape_distance
 
@@ -96,7 +97,7 @@ class BarrierNewton:
     #: wrinkling modes the model resolves only at the mesh scale, are the suspect)
     max_pushes: int = 0
     #: failures after which continuation in pressure cuts the load step
-    #: (`jaxvalve.continuation.cut_on`): Newton converges in tens of iterations from a
+    #: (`jaxvalve.solvers.continuation.cut_on`): Newton converges in tens of iterations from a
     #: near enough start, so a solve still short of rtol at its cap had too long a step
     cut_on = ("stagnation", "max_steps_reached")
 
@@ -282,7 +283,7 @@ class _Model:
 
 
 #: cosine of the fold limit: a step may not turn two triangles that share an edge more
-#: than `jaxvalve.checks.FOLD_DEG` (150 degrees) apart, the state check's bound
+#: than `jaxvalve.valve.checks.FOLD_DEG` (150 degrees) apart, the state check's bound
 _FOLD_COS = float(np.cos(np.radians(FOLD_DEG)))
 
 

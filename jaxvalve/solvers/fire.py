@@ -44,7 +44,7 @@ class FIRE:
     dt_min: float = 1e-6
     patience: int = 5000
     #: a stagnated FIRE solve is not given a shorter load step by continuation in
-    #: pressure (`jaxvalve.continuation.cut_on`): its stall is the contact law's roughness
+    #: pressure (`jaxvalve.solvers.continuation.cut_on`): its stall is the contact law's roughness
     #: or a nearly free mode, not the length of the load step
     cut_on = ()
 

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 import stress_suite as S
-from jaxvalve.checks import (crossing_depth, gent_invariant, interior_edges,
+from jaxvalve.valve.checks import (crossing_depth, gent_invariant, interior_edges,
                              inverted_triangles, triangle_checks)
-from jaxvalve.meshgen import disk
+from jaxvalve.geometry.meshgen import disk
 from jaxvalve.scene import Scene
 
 MAX_STEPS = 3000
@@ -123,7 +123,7 @@ def test_float32_runs_never_silent(valve):
         if r.outcome == "reported":
             assert r.result in ("max_steps_reached", "leaflets_cross", "inverted_triangles",
                                 "stretch_limit"), r.cause
-        if r.result == "max_steps_reached":    # and why it stopped (`jaxvalve.stall`)
+        if r.result == "max_steps_reached":    # and why it stopped (`jaxvalve.solvers.stall`)
             assert re.search(r"the (\w+ )?force is (dis)?continuous", r.cause), r.cause
 
 

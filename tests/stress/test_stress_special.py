@@ -9,7 +9,7 @@ import pytest
 
 import stress_suite as S
 from jaxvalve import valve as V
-from jaxvalve.leaflet_mesh import mesh_leaflet
+from jaxvalve.geometry.leaflet_mesh import mesh_leaflet
 from jaxvalve.scene import Scene
 
 MAX_STEPS = 3000

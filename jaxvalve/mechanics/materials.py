@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .errors import ParameterError
+from ..errors import ParameterError
 
 
 def _pytree(cls):

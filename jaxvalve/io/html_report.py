@@ -95,7 +95,7 @@ def _status(result) -> tuple[str, str]:
 
 def html_report(result) -> str:
     """The report of a `SimulationResult` as one HTML document (str)."""
-    from . import __version__
+    from .. import __version__
     from .plots import plot_aortic_view, plot_pair_heights, plot_profiles
 
     cls, status = _status(result)

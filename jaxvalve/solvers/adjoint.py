@@ -12,7 +12,7 @@ positions of x0 get g + mu . dR/dx there).  The solve runs in one of two ways:
   inside jit too) and poisons the gradient with NaN.
 * **LU** (`solve_lu`, on the host): scipy's GMRES on the same exact products
   (`residual_vjp`), preconditioned by the sparse LU of the assembled tangent
-  (`jaxvalve.tangent.assemble`).  Much faster on valves, where contact makes block-Jacobi
+  (`jaxvalve.solvers.tangent.assemble`).  Much faster on valves, where contact makes block-Jacobi
   weak (docs/gradients-and-optimisation.md, "Why not block-Jacobi"); the optimiser's
   default (``adjoint="lu"``).  It returns an `AdjointReport` and raises
   `ConvergenceError` when GMRES misses its tolerance.
@@ -41,11 +41,11 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.sparse.linalg as spla
 
-from . import assembly
-from .contact.neighbours import whole_lists
-from .errors import ConvergenceError
-from .quick_jit import quick_jit
-from .solvers.newton import _apply_blocks, _precond
+from ..mechanics import assembly
+from ..contact.neighbours import whole_lists
+from ..errors import ConvergenceError
+from ..quick_jit import quick_jit
+from .newton import _apply_blocks, _precond
 from .tangent import assemble
 
 __all__ = ["cotangents", "solve_traced", "solve_lu", "residual_vjp", "AdjointReport",
@@ -98,7 +98,7 @@ def _raise_unconverged(res):
             f"the adjoint solve of the equilibrium gradient did not converge: relative "
             f"residual {res:.3e} after at most {ADJOINT_MAXITER} GMRES iterations (it must "
             f"be <= {ADJOINT_ACCEPT:g}); use the LU-preconditioned adjoint "
-            f"(jaxvalve.adjoint.solve_lu, the optimiser's adjoint='lu') on valves")
+            f"(jaxvalve.solvers.adjoint.solve_lu, the optimiser's adjoint='lu') on valves")
 
 
 def cotangents(problem, params, y, nb, delta, g):
@@ -118,7 +118,7 @@ def residual_vjp(x, problem, params, nbrs, v):
     (N, 3).  One compiled program serves the adjoint's K^T products (`adjoint_solve`) and
     the pullback of an adjoint to the parameters (`optimize.Evaluator`).  nbrs: the
     closure's contact pair list (`BarrierPairs` on the barrier contact)."""
-    from .contact.ipc_pairs import BarrierPairs
+    from ..contact.ipc_pairs import BarrierPairs
     if isinstance(nbrs, BarrierPairs):
         rows = _barrier_rows(problem, nbrs)
         return _barrier_residual_vjp(x, problem, params, rows, v, n_edges=rows.pop("n"))
@@ -146,7 +146,7 @@ def _pad(a, n):
 
 def _barrier_rows(problem, pairs) -> dict:
     """The pair list as padded integer arrays, with the edge map of the mesh."""
-    from .mesh import unique_edges
+    from ..geometry.mesh import unique_edges
     edges, tri_edge = unique_edges(np.asarray(problem.triangles))
     P, Q = len(pairs.pt), len(pairs.ee)
     p_, q_ = (-(-max(k, 1) // BARRIER_PAD) * BARRIER_PAD for k in (P, Q))
@@ -160,7 +160,7 @@ def _barrier_rows(problem, pairs) -> dict:
 def barrier_energy(y, problem, params, rows, n_edges):
     """Strain, bending and barrier energy (N mm) at y (N, 3) over a padded pair list
     (`_barrier_rows`), the collision weights from ``params.ref``."""
-    from .contact.barrier import collision_weights, pair_weights
+    from ..contact.barrier import collision_weights, pair_weights
     ref = assembly.prepare(problem, params)
     e = assembly.conservative_energy(y, problem, params.replace(contact=None), ref)
     nw, ew, l2 = collision_weights(params.ref, problem.triangles, rows["tri_edge"], n_edges)
@@ -181,7 +181,7 @@ def _barrier_residual_vjp(x, problem, params, rows, v, n_edges):
 def _solve_barrier_lu(problem, params, x, pairs, g, rtol):
     """`solve_lu` on the barrier contact: the exact Jacobian's sparse LU (module
     docstring)."""
-    from .solvers.barrier_newton import _Model
+    from .barrier_newton import _Model
     t0 = time.perf_counter()
     free = np.asarray(problem.free)
     fdof = np.repeat(free, 3)
@@ -209,7 +209,7 @@ def solve_lu(problem, params, x, nbrs, g, *, rtol=1e-10, maxiter=300):
     """mu (N, 3) with K^T mu = g on the free dofs (K = -dR/dx at the equilibrium x); mu is
     zero on fixed nodes.  GMRES (scipy) on exact VJPs, preconditioned by the sparse LU of
     the assembled approximation of K^T.  Returns (mu, `AdjointReport`)."""
-    from .contact.ipc_pairs import BarrierPairs
+    from ..contact.ipc_pairs import BarrierPairs
     if isinstance(nbrs, BarrierPairs):
         return _solve_barrier_lu(problem, params, x, nbrs, g, rtol)
     t0 = time.perf_counter()

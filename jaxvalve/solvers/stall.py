@@ -26,8 +26,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import assembly, equilibrium
-from .checks import FOLD_DEG, fold_angles
+from ..mechanics import assembly
+from . import equilibrium
+from ..valve.checks import FOLD_DEG, fold_angles
 
 __all__ = ["StallReport", "probe", "stopped_cause", "fold_bound_cause", "TERMS"]
 

@@ -34,7 +34,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .errors import ParameterError
+from ..errors import ParameterError
 from .materials import Gent, MassSpring, NeoHookean, StVenantKirchhoff, _concrete
 
 __all__ = ["Bending", "hinges", "plate_modulus", "hinge_weights", "bending_energy"]

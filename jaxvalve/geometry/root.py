@@ -109,8 +109,8 @@ import numpy as np
 from scipy.optimize import brentq
 from scipy.spatial import cKDTree
 
-from .contact.geometry import point_triangle_distance_np
-from .errors import MeshError, ParameterError
+from ..contact.geometry import point_triangle_distance_np
+from ..errors import MeshError, ParameterError
 
 __all__ = [
     "AorticRoot",

@@ -17,17 +17,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import adjoint, assembly
-from .contact.soft_pairs import (SoftPairs, build_soft_pairs, default_soft_capacity,
+from . import adjoint
+from ..mechanics import assembly
+from ..contact.soft_pairs import (SoftPairs, build_soft_pairs, default_soft_capacity,
                                  stale_soft_pairs)
-from .contact.soft_pairs import refresh as refresh_soft
-from .contact.neighbours import whole_lists as one_prefix
-from .errors import ConvergenceError, NeighbourListOverflow, ParameterError
-from .mesh import edge_lengths_np
-from .problem import Params, Problem, validate_params
-from .solvers import RESULTS, EquilibriumSystem, FixedPoint, NewtonKrylov, Solution, Stats, iterate
-from .solvers.base import escape_distance, relative_residual
-from . import contact as _contact
+from ..contact.soft_pairs import refresh as refresh_soft
+from ..contact.neighbours import whole_lists as one_prefix
+from ..errors import ConvergenceError, NeighbourListOverflow, ParameterError
+from ..geometry.mesh import edge_lengths_np
+from ..mechanics.problem import Params, Problem, validate_params
+from .base import RESULTS, EquilibriumSystem, Solution, Stats, iterate
+from .fixed_point import FixedPoint
+from .newton import NewtonKrylov
+from .base import escape_distance, relative_residual
+from .. import contact as _contact
 
 _log = logging.getLogger("jaxvalve")
 

@@ -23,7 +23,7 @@ import math
 
 import numpy as np
 
-from .errors import ParameterError
+from ..errors import ParameterError
 
 __all__ = ["Template", "PAPER_TEMPLATES", "ALPHA_RANGE"]
 

@@ -26,7 +26,7 @@ import math
 
 import numpy as np
 
-from .mesh import cauchy_green_np
+from ..geometry.mesh import cauchy_green_np
 
 __all__ = ["CheckReport", "triangle_checks", "inverted_triangles", "interior_edges",
            "fold_angles",

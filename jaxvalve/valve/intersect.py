@@ -27,7 +27,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .errors import MeshError
+from ..errors import MeshError
 
 __all__ = ["triangles_intersect", "leaflets_intersect", "self_intersections",
            "candidate_triangle_pairs"]

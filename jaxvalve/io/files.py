@@ -52,9 +52,9 @@ from io import StringIO
 import meshio
 import numpy as np
 
-from .errors import (JaxvalveError, LandmarksFileError, MeshError, ParameterError,  # noqa: F401
+from ..errors import (JaxvalveError, LandmarksFileError, MeshError, ParameterError,  # noqa: F401
                      RootFileError, SurfaceFileError)
-from .root import AorticRoot, distance_to_surface
+from ..geometry.root import AorticRoot, distance_to_surface
 
 __all__ = [
     "RootFileError", "SurfaceFileError", "LandmarksFileError",

@@ -20,7 +20,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from .errors import MeshError
+from ..errors import MeshError
 
 __all__ = ["along_path", "along_polyline", "leaflet_frame", "place_leaflet"]
 

@@ -38,13 +38,13 @@ from typing import Any, Callable
 import jax
 import numpy as np
 
-from . import valve as V
-from .continuation import Ramp, RampResult, cut_on, ramp
-from .errors import ConvergenceError
-from .scene import Scene
-from .solvers import RESULTS
-from .stall import stopped_cause
-from .timing import compile_timer
+from . import model as V
+from ..solvers.continuation import Ramp, RampResult, cut_on, ramp
+from ..errors import ConvergenceError
+from ..scene import Scene
+from ..solvers import RESULTS
+from ..solvers.stall import stopped_cause
+from ..timing import compile_timer
 
 __all__ = ["SolveReport", "LoadSolve", "close_load", "close_valve", "swing_shut", "fall_back",
            "separated", "path_name"]
@@ -60,13 +60,13 @@ class SolveReport:
     ||F_free|| / ||F_pressure||, wall time (s) and the part of it spent compiling.
     A load past the valve's limit point has result 'limit_point' and ``limit_pressure``,
     the highest pressure (mmHg) with an equilibrium, whose state and residual are
-    reported instead (`jaxvalve.continuation`).  state_pressure (mmHg): the pressure of
+    reported instead (`jaxvalve.solvers.continuation`).  state_pressure (mmHg): the pressure of
     the state reported, where it is not ``pressure`` (a limit point, or a continuation
     that failed on the way).  cause: for a solve stopped at its step cap, whether the
-    force jumps where it stopped (`jaxvalve.stall`), else None.  path: the solver and
+    force jumps where it stopped (`jaxvalve.solvers.stall`), else None.  path: the solver and
     contact law that closed it ("fire+smooth", "newton+barrier", ...).  fallback: where
     the barrier path closed a load after the scene's own path failed
-    (`jaxvalve.closure`, "Fallback"), what failed there (one line), else None; wall_s
+    (`jaxvalve.valve.closure`, "Fallback"), what failed there (one line), else None; wall_s
     and compile_s then include the failed attempt's."""
 
     pressure: float
@@ -316,7 +316,7 @@ def separated(valve, x) -> bool:
     triangle (`checks.triangle_checks`: the barrier solver's steps keep every edge below
     the fold limit), no crossing leaflets, every barrier pair apart."""
     from .checks import triangle_checks
-    from .contact.ipc_pairs import build_pairs
+    from ..contact.ipc_pairs import build_pairs
     x = np.asarray(x, np.float64)
     return bool(np.all(np.isfinite(x))
                 and triangle_checks(valve.ref, valve.triangles, x).ok

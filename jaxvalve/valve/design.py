@@ -23,12 +23,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .errors import ParameterError
-from .materials import _concrete
+from ..errors import ParameterError
+from ..mechanics.materials import _concrete
 from .placement import along_path, leaflet_frame
-from .root import _unit_path, length_terms, path_length
-from .template import Template, sutured_length
-from .template_map import TemplateMap
+from ..geometry.root import _unit_path, length_terms, path_length
+from ..geometry.template import Template, sutured_length
+from ..geometry.template_map import TemplateMap
 
 __all__ = ["check_theta", "FixedPaths", "BenchmarkPaths", "ValveDesign",
            "paths_for"]

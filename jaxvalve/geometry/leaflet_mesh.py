@@ -16,7 +16,7 @@ import math
 
 import numpy as np
 
-from .errors import ParameterError
+from ..errors import ParameterError
 from .mesh import signed_areas_np, triangle_angles, unique_edges
 from .template import Template, free_point, sutured_point
 

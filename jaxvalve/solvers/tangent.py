@@ -1,5 +1,5 @@
 """An assembled sparse approximation of the valve's stiffness K = -dR/dx (the
-preconditioner of the LU adjoint, `jaxvalve.adjoint.solve_lu`).
+preconditioner of the LU adjoint, `jaxvalve.solvers.adjoint.solve_lu`).
 
 `assemble(problem, params, x, nbrs)` sums, as a scipy CSC matrix over the free dofs:
 * the 9x9 Hessians of each triangle's strain energy (`assembly._element_hessians`);
@@ -20,12 +20,12 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
 
-from . import assembly
-from .bending import bending_energy, plate_modulus
-from .contact.geometry import closest_point_soa, point_triangle_distance_soa
-from .contact.smooth import _columns
-from .contact.soft_pairs import SoftPairs
-from .quick_jit import quick_jit
+from ..mechanics import assembly
+from ..mechanics.bending import bending_energy, plate_modulus
+from ..contact.geometry import closest_point_soa, point_triangle_distance_soa
+from ..contact.smooth import _columns
+from ..contact.soft_pairs import SoftPairs
+from ..quick_jit import quick_jit
 
 __all__ = ["assemble", "pressure_blocks", "hinge_hessians", "local_hinges", "BlockAssembler",
            "BlockPattern"]

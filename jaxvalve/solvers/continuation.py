@@ -45,9 +45,9 @@ from typing import Any, Callable
 
 import numpy as np
 
-from .errors import ParameterError
-from .solvers import RESULTS
-from .solvers.base import check_settings
+from ..errors import ParameterError
+from .base import RESULTS
+from .base import check_settings
 
 __all__ = ["Ramp", "RampResult", "ramp", "cut_on", "CUT_ON"]
 

@@ -15,13 +15,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import equilibrium
-from .contact import SmoothContact
-from .errors import ConvergenceError, ParameterError
-from .leaflet_mesh import LeafletMesh
+from ..solvers import equilibrium
+from ..contact import SmoothContact
+from ..errors import ConvergenceError, ParameterError
+from ..geometry.leaflet_mesh import LeafletMesh
 from .placement import place_leaflet
-from .problem import Params, Problem, make_problem, mmhg
-from .solvers import FIRE, RESULTS, Solution
+from ..mechanics.problem import Params, Problem, make_problem, mmhg
+from ..solvers import FIRE, RESULTS, Solution
 
 __all__ = ["Valve", "build_valve", "settle", "close", "valve_contact", "state_failure",
            "leaflet_crossings"]
@@ -33,7 +33,8 @@ STATE_FAILURES = {
     "leaflets_cross": ("the force residual met the tolerance but leaflets cross one another "
                        "(exact triangle-triangle test)"),
     "inverted_triangles": ("the force residual met the tolerance but a triangle is folded "
-                           "over its neighbour or collapsed (jaxvalve.checks.triangle_checks)"),
+                           "over its neighbour or collapsed "
+                           "(jaxvalve.valve.checks.triangle_checks)"),
     "nonfinite": RESULTS.nonfinite.message,
 }
 
@@ -108,7 +109,7 @@ class Valve:
         """`jaxvalve.contact.ipc_pairs.BarrierTopology` of the three leaflets (barrier
         contact): weights, edges, and the commissure pins where neighbours are sewn to one
         point."""
-        from .contact.ipc_pairs import barrier_topology
+        from ..contact.ipc_pairs import barrier_topology
         return barrier_topology(self.triangles, self.body, np.asarray(self.ref),
                                 np.asarray(self.problem.fixed), self.x_placed)
 
@@ -176,7 +177,7 @@ def close(valve: Valve, material, pressure_mmhg=80.0, *, solver=None, contact=No
           check_state=False, nbrs=None, ref=None, whole_lists=False):
     """One equilibrium solve of the valve under ``pressure_mmhg`` from ``x0`` (default
     x_start).  Closing a valve under its loads, with continuation in pressure, is
-    `jaxvalve.closure` (the one closure driver), which calls this for every solve.
+    `jaxvalve.valve.closure` (the one closure driver), which calls this for every solve.
 
     check_state: test a converged state with `leaflet_crossings` and
     `checks.triangle_checks` (host side, ~10 ms at h = 2 mm); if leaflets cross, the
@@ -198,14 +199,14 @@ def close(valve: Valve, material, pressure_mmhg=80.0, *, solver=None, contact=No
         params = params.replace(ref=ref)
     x0 = valve.x_start if x0 is None else x0
     if getattr(params.contact, "barrier", False):
-        from .solvers import BarrierNewton, solve_barrier
+        from ..solvers import BarrierNewton, solve_barrier
         solver = BarrierNewton() if solver is None else solver
         if not isinstance(solver, BarrierNewton):
             raise ParameterError("the barrier contact is solved by BarrierNewton; got "
                                  f"{type(solver).__name__}")
         topo = valve.barrier_topology
         if ref is not None:      # a mapped template: its own collision weights
-            from .contact.ipc_pairs import barrier_topology
+            from ..contact.ipc_pairs import barrier_topology
             topo = barrier_topology(valve.triangles, valve.body, np.asarray(ref),
                                     np.asarray(valve.problem.fixed), valve.x_placed)
         sol, _ = solve_barrier(valve.problem, params, np.asarray(x0, np.float64), solver,
@@ -242,7 +243,7 @@ def state_failure(valve: Valve, x):
     """Why the state x (N, 3) mm, which a solver calls converged, is still not a valid
     closed valve, as a key of `STATE_FAILURES`: "leaflets_cross" (an exact triangle-triangle
     test finds leaflets crossing), "inverted_triangles" (a triangle collapsed or turned
-    over, `jaxvalve.checks`), "nonfinite", or None when it passes."""
+    over, `jaxvalve.valve.checks`), "nonfinite", or None when it passes."""
     from .checks import triangle_checks
     x = np.asarray(x, np.float64)
     if not np.all(np.isfinite(x)):

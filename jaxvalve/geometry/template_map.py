@@ -26,10 +26,10 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.sparse.linalg as spla
 
-from .errors import MeshError, ParameterError
+from ..errors import MeshError, ParameterError
 from .leaflet_mesh import LeafletMesh, _edge_counts, mesh_quality
 from .mesh import signed_areas_np
-from .placement import cot_laplacian
+from ..valve.placement import cot_laplacian
 from .template import Template, corners
 
 __all__ = ["TemplateMap", "template_map", "EDGES"]

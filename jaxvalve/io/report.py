@@ -11,9 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import RootFileError
+from ..errors import RootFileError
 from .jsonable import plain
-from .mesh import cauchy_green_np, signed_areas_np
+from ..geometry.mesh import cauchy_green_np, signed_areas_np
 
 __all__ = ["metrics_json", "write_outputs", "principal_stretches", "nodal_average",
            "nodal_gap", "UNITS"]
@@ -35,7 +35,7 @@ def metrics_json(result) -> dict:
     limit_pressure (mmHg): where the valve passed a limit point, the highest
     pressure with an equilibrium, whose state the metrics describe (else null).
     """
-    from . import __version__
+    from .. import __version__
 
     scene, valve = result.scene, result.valve
     solves = []
@@ -96,7 +96,7 @@ def nodal_gap(metrics, x, triangles):
     as in `jaxvalve.coaptation.sharp.level_values`) are +inf there; they are clipped to
     that cutoff here, so a value equal to the cutoff means "at least this far".
     Returns (gap (N,), cutoff)."""
-    from .coaptation.topology import max_edge_length
+    from ..coaptation.topology import max_edge_length
 
     cutoff = (metrics.g_c + max_edge_length(np.asarray(x), np.asarray(triangles))) \
         * (1 + 1e-9) + 1e-12
@@ -136,10 +136,10 @@ def write_outputs(result, out_dir, figures: bool = True) -> list[Path]:
     node: converged (n,) uint8 (1 where every closure converged) and residual (n,) (the
     worse relative residual of the closures, as in metrics.json); with ``figures`` also
     ``valve.png`` (side view), ``valve_aortic_view.png`` (down the axis from the aorta),
-    ``profiles.png`` and ``pair_heights.png``, and ``report.html`` (`jaxvalve.html_report`:
+    ``profiles.png`` and ``pair_heights.png``, and ``report.html`` (`jaxvalve.io.html_report`:
     one self-contained page, the valve in 3D, the metrics and the status).  Returns the
     paths."""
-    from .io import write_surface
+    from .files import write_surface
 
     out = Path(out_dir)
     paths = []

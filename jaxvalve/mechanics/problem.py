@@ -15,9 +15,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .errors import MeshError, ParameterError
+from ..errors import MeshError, ParameterError
 from .materials import Material, _check_positive, _concrete
-from .mesh import validate_mesh
+from ..geometry.mesh import validate_mesh
 
 MMHG = 1.33322e-4  # MPa per mmHg
 
@@ -36,7 +36,7 @@ class Problem:
     fixed (N,) bool: nodes held at their initial position (sutured edge, clamp).
     body (N,) int32: body id per node (leaflet index); contact acts between bodies.
     hinges (K, 6) int32: interior edges (i, j, k, l, t1, t2) for the bending energy
-    (`jaxvalve.bending.hinges`), or None.
+    (`jaxvalve.mechanics.bending.hinges`), or None.
     """
 
     triangles: Any
@@ -59,12 +59,12 @@ class Params:
     """Traced parameters.
 
     ref (N, 2|3) mm: stress-free reference coordinates.
-    material: a `jaxvalve.materials` model.
+    material: a `jaxvalve.mechanics.materials` model.
     thickness: H, mm.  pressure: P, MPa (use `mmhg`).
     fibre_angle: radians, fibre direction in the 2D template frame (scalar), or per
         triangle edge (M, 3); used by anisotropic spring models only.
     contact: None, `SmoothContact` or `PaperContact`.
-    bending: None (a pure membrane, as specified) or `jaxvalve.bending.Bending`.
+    bending: None (a pure membrane, as specified) or `jaxvalve.mechanics.bending.Bending`.
     """
 
     ref: Any

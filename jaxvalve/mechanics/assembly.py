@@ -15,7 +15,7 @@ import jax.numpy as jnp
 
 from . import bending
 from .materials import SpringGeometry
-from .mesh import local_reference, reference_areas, right_cauchy_green
+from ..geometry.mesh import local_reference, reference_areas, right_cauchy_green
 from .problem import Params, Problem
 
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import jax.numpy as jnp
 
-from .errors import MeshError
+from ..errors import MeshError
 
 
 def validate_mesh(ref, triangles, *, min_area_ratio: float = 1e-10):
