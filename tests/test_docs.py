@@ -160,3 +160,17 @@ def test_benchmark_results_page_is_generated_from_the_result_files():
         "docs/benchmarks.md is out of date: run python benchmarks/results_page.py"
     for f in (ROOT / "benchmarks" / "results").rglob("*.txt"):
         assert f"## `{f.relative_to(ROOT).as_posix()}`" in text
+
+
+def test_relative_links_point_to_files_that_exist():
+    """Every relative link ``[text](path)`` and image of README.md and docs/*.md names a
+    file of the repository (no path outside it)."""
+    bad = []
+    for page in PAGES:
+        for target in re.findall(r"\]\(([^)\s]+)\)", page.read_text(encoding="utf-8")):
+            if re.match(r"[a-z]+:", target) or target.startswith("#"):
+                continue
+            path = (page.parent / target.split("#")[0]).resolve()
+            if not path.exists() or ROOT not in path.parents and path != ROOT:
+                bad.append(f"{page.name}: {target}")
+    assert not bad, bad
