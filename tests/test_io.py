@@ -303,3 +303,18 @@ def test_bad_writes(tmp_path, root):
         write_root(root, tmp_path / "a.vtu", tmp_path / "a.yaml")
     with pytest.raises(LandmarksFileError, match=".json or .toml"):
         write_landmarks(root, tmp_path / "a.yml")
+
+
+def test_packages_named_after_a_module_offer_its_api():
+    """`jaxvalve.io` offers `io.files`' API and `jaxvalve.valve` `valve.model`'s, read on
+    first use (`jaxvalve.lazy_exports`): the same objects, listed by dir(), and an unknown
+    name is an AttributeError."""
+    from jaxvalve import io, valve
+    from jaxvalve.io import files
+    from jaxvalve.valve import model
+    for pkg, mod in ((io, files), (valve, model)):
+        assert set(mod.__all__) <= set(pkg._API) <= set(dir(pkg))
+        for name in pkg._API:
+            assert getattr(pkg, name) is getattr(mod, name)
+        with pytest.raises(AttributeError, match="has no attribute 'nope'"):
+            pkg.nope
