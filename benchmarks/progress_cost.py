@@ -55,6 +55,8 @@ def main(argv=None):
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
+    if args.repeats < 1:
+        ap.error(f"--repeats must be a positive integer; got {args.repeats}")
     out = Tee()
     jax.config.update("jax_enable_x64", True)
     out(f"# progress beacons: cost in a compiled FIRE closure (h = {args.h} mm)")

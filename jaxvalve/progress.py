@@ -20,11 +20,14 @@ Two halves, apart so that the compiled programs never depend on whether anyone l
 """
 from __future__ import annotations
 
+import math
 import threading
 import time
 from typing import Callable
 
 import numpy as np
+
+from .errors import ParameterError
 
 __all__ = ["BEACON_EVERY", "EVERY_S", "beacon", "member_done", "latest", "Heartbeat"]
 
@@ -86,6 +89,9 @@ class Heartbeat:
                  unit: str = ""):
         self._print = say
         self.every = float(EVERY_S if every is None else every)
+        if not (math.isfinite(self.every) and self.every > 0):
+            raise ParameterError(f"Heartbeat: every must be a finite number of seconds > 0; "
+                                 f"got {every!r}")
         self.unit = unit
         self._lock = threading.Lock()
         self._stop = threading.Event()

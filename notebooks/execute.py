@@ -32,6 +32,12 @@ def execute(path: Path, timeout: int = 1800) -> float:
 
 def main(argv=None) -> int:
     names = (sys.argv[1:] if argv is None else argv) or sorted(p.name for p in HERE.glob("*.ipynb"))
+    unknown = [n for n in names if not (HERE / n).is_file() or not n.endswith(".ipynb")]
+    if unknown:
+        known = ", ".join(sorted(p.name for p in HERE.glob("*.ipynb")))
+        print(f"execute.py: no notebook {', '.join(unknown)} in notebooks/; the notebooks "
+              f"are: {known}", file=sys.stderr)
+        return 2
     for name in names:
         path = HERE / name
         print(f"executing {path.name} ...", flush=True)

@@ -126,7 +126,7 @@ def init(evaluator, optimizer, *, adjoint: str = "lu", warm=None) -> LoopState:
     ev = evaluator.forward(rab, warm)
     counts["forward"] += 1
     if not ev.converged:
-        raise ConvergenceError(f"the start did not close: {ev.reason}")
+        raise ConvergenceError(f"the start did not close: {ev.reason}", ev)
     v, g, adj = _gradient(evaluator, ev, counts, adjoint)
     secs = time.perf_counter() - t0
     rec = _record(ev, 0, v, g, counts, secs, dict(step=0.0, trials=0, adjoint_residual=adj))

@@ -13,6 +13,7 @@ import numpy as np
 from jaxvalve import Scene
 from jaxvalve.errors import ConvergenceError, ParameterError
 from jaxvalve.io import check_out_dir
+from jaxvalve.valve.closure import fallback_scene
 
 from . import loop
 from .evaluate import Evaluator
@@ -146,8 +147,9 @@ def optimize_template(scene: Scene | None = None, objective: Objective | None = 
             same = lambda c: {**c, "options": {k: v for k, v in c["options"].items()  # noqa
                                                if k != "max_iter"}}
             if same(json.loads(json.dumps(config))) != same(saved["trajectory"]["config"]):
-                alt = _barrier_scene(scene)     # a run that fell back to the barrier law
-                alt_config = _config(alt, objective, optimizer, options)
+                alt = fallback_scene(scene)     # a run that fell back to the barrier law
+                alt_config = None if alt is None else _config(alt, objective, optimizer,
+                                                              options)
                 if alt is None or (same(json.loads(json.dumps(alt_config)))
                                    != same(saved["trajectory"]["config"])):
                     raise ParameterError(f"cannot resume {str(out)!r}: its scene, objective "
@@ -177,9 +179,12 @@ def optimize_template(scene: Scene | None = None, objective: Objective | None = 
                 try:
                     state = loop.init(evaluator, opt, adjoint=adjoint)
                 except ConvergenceError as e:
-                    alt = _barrier_scene(scene)
-                    if alt is None or given is not None:
-                        raise
+                    alt = fallback_scene(scene)
+                    ev = e.solution          # the start's `Evaluation`
+                    limit = ev is not None and any(sv["result"] == "limit_point"
+                                                   for sv in ev.solves)
+                    if alt is None or given is not None or limit:
+                        raise            # a limit point is the membrane's, as in simulate
                     # the fallback of `simulate`, for the whole run: one contact law for
                     # every closure and gradient of the run
                     say(f"the start did not close on the smooth contact law ({e}); the "
@@ -230,14 +235,6 @@ def optimize_template(scene: Scene | None = None, objective: Objective | None = 
     return OptimizationResult(np.asarray(state.rab), state.value, records, reason, failed,
                               state.counts, seconds, ct.seconds, state.evaluation, files,
                               check)
-
-
-def _barrier_scene(scene):
-    """The scene on the barrier law (projected Newton), where ``scene`` is on FIRE and the
-    smooth law with its fallback on (`Scene.fallback`); else None."""
-    if (scene.solver, scene.contact) == ("fire", "smooth") and scene.fallback:
-        return scene.replace(solver="newton", contact="barrier")
-    return None
 
 
 def _baked(objective):

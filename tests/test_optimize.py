@@ -302,6 +302,8 @@ def test_a_start_that_does_not_close_on_the_smooth_law_runs_on_the_barrier_law(m
     the run says so; with ``fallback=False`` (or a given evaluator) the error stands.
     The closures are stubbed: the control flow is what is tested here (the barrier
     evaluator itself: `test_the_evaluator_closes_on_the_barrier_path_from_a_swing_shut`)."""
+    from types import SimpleNamespace
+
     import optimize.run as R
     from jaxvalve.errors import ConvergenceError
 
@@ -312,10 +314,13 @@ def test_a_start_that_does_not_close_on_the_smooth_law_runs_on_the_barrier_law(m
             self.scene = scene
             made.append((scene.solver, scene.contact))
 
+    start_result = ["leaflets_cross"]
+
     def init(ev, opt, adjoint="lu"):
         if ev.scene.contact == "smooth":
+            failed = SimpleNamespace(solves=({"result": start_result[0]},))
             raise ConvergenceError("the start did not close: closure at 80 mmHg: "
-                                   "leaflets_cross, residual 9.87e-07, 981 steps")
+                                   f"{start_result[0]}, residual 9.87e-07, 981 steps", failed)
         raise RuntimeError("the barrier run has started")
 
     monkeypatch.setattr(R, "Evaluator", Stub)
@@ -328,4 +333,10 @@ def test_a_start_that_does_not_close_on_the_smooth_law_runs_on_the_barrier_law(m
     made.clear()
     with pytest.raises(ConvergenceError, match="leaflets_cross"):
         R.optimize_template(Scene(h=3.0, fallback=False))
+    assert made == [("fire", "smooth")]
+    # a start at a limit point is the membrane's: no fallback (as in simulate)
+    made.clear()
+    start_result[0] = "limit_point"
+    with pytest.raises(ConvergenceError, match="limit_point"):
+        R.optimize_template(Scene(h=3.0))
     assert made == [("fire", "smooth")]

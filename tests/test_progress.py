@@ -79,3 +79,12 @@ def test_a_compiled_solve_reports_its_steps():
     stop = equilibrium.solve(problem, params, x0, FIRE(rtol=1e-12, max_steps=2 * every),
                              throw=False)
     np.testing.assert_allclose(after["residual"], float(stop.stats.residual), rtol=1e-10)
+
+
+def test_heartbeat_interval_must_be_positive():
+    import pytest
+
+    from jaxvalve.errors import ParameterError
+    for bad in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(ParameterError, match="every must be a finite number of seconds"):
+            progress.Heartbeat(print, every=bad)

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import base64
 import html
-import io
 import json
 from pathlib import Path
 
@@ -36,16 +35,6 @@ METRICS = (
     ("h_c", "h_c", "mm", "axial extent of the central zone (0: a central gap)"),
     ("coaptation_area", "coaptation area", "mm^2", "area of the three leaflets' zones"),
 )
-
-
-def _png(fn, result, **kw) -> str:
-    """A figure drawn by ``fn(result, ax=...)`` as a base64 PNG data URI."""
-    from matplotlib.figure import Figure
-    fig = Figure(figsize=(7, 6))
-    fn(result, ax=fig.add_subplot(**kw))
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
-    return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
 
 
 def _scene_data(result) -> dict:
@@ -93,10 +82,23 @@ def _status(result) -> tuple[str, str]:
                     f"{worst:.1e} or less (rtol {result.scene.rtol:g}).")
 
 
-def html_report(result) -> str:
-    """The report of a `SimulationResult` as one HTML document (str)."""
+#: the figures the report embeds: (`plots.FIGURES` name, caption)
+EMBEDDED = (("valve_aortic_view", "the closed valve seen from the aorta"),
+            ("profiles", "coaptation profiles on the flat template"),
+            ("pair_heights", "pair coaptation heights H_ij(w)"))
+
+
+def html_report(result, pngs: dict | None = None) -> str:
+    """The report of a `SimulationResult` as one HTML document (str).  pngs: the
+    figures already drawn (`plots.figure_pngs`, as `write_outputs` passes them); those
+    missing are drawn here."""
     from .. import __version__
-    from .plots import plot_aortic_view, plot_pair_heights, plot_profiles
+    from .plots import figure_pngs
+
+    pngs = dict(pngs or {})
+    missing = [n for n, _ in EMBEDDED if n not in pngs]
+    if missing:
+        pngs.update(figure_pngs(result, missing))
 
     cls, status = _status(result)
     s = result.summary()
@@ -114,11 +116,10 @@ def html_report(result) -> str:
              f"{sc.pressure:g} mmHg, effective-height load {sc.he_pressure:g} mmHg; "
              f"coaptation distance g_c = {result.metrics.g_c:g} mm")
     figs = "".join(
-        f"<figure><img alt='{html.escape(alt)}' src='{_png(fn, result)}'>"
+        f"<figure><img alt='{html.escape(alt)}' src='data:image/png;base64,"
+        f"{base64.b64encode(pngs[name]).decode('ascii')}'>"
         f"<figcaption>{html.escape(alt)}</figcaption></figure>"
-        for fn, alt in ((plot_aortic_view, "the closed valve seen from the aorta"),
-                        (plot_profiles, "coaptation profiles on the flat template"),
-                        (plot_pair_heights, "pair coaptation heights H_ij(w)")))
+        for name, alt in EMBEDDED)
     data = json.dumps(_scene_data(result), separators=(",", ":"))
     return _PAGE.format(version=html.escape(__version__), cls=cls,
                         status=html.escape(status), rows=rows, solves=solves,
@@ -127,10 +128,10 @@ def html_report(result) -> str:
                         g_c=f"{result.metrics.g_c:g}")
 
 
-def write_html_report(result, path) -> Path:
+def write_html_report(result, path, pngs: dict | None = None) -> Path:
     """Write `html_report` to ``path`` (UTF-8); returns the path."""
     p = Path(path)
-    p.write_text(html_report(result), encoding="utf-8")
+    p.write_text(html_report(result, pngs), encoding="utf-8")
     return p
 
 

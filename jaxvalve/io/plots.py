@@ -12,7 +12,7 @@ import sys
 import numpy as np
 
 __all__ = ["plot_valve", "plot_aortic_view", "plot_profiles", "plot_pair_heights",
-           "profile_distance", "aortic_frame"]
+           "profile_distance", "aortic_frame", "FIGURES", "figure_pngs"]
 
 #: colour map of the gap (mm) inside the coaptation zone, 0 (touching) to g_c
 GAP_CMAP = "plasma"
@@ -242,3 +242,29 @@ def plot_pair_heights(result, ax=None):
     ax.set_ylim(bottom=0)
     ax.legend(loc="best", fontsize="small")
     return fig
+
+
+#: the figures of a simulation's outputs: name -> (drawing function, subplot keywords)
+FIGURES = {"valve": (plot_valve, {"projection": "3d"}),
+           "valve_aortic_view": (plot_aortic_view, {}),
+           "profiles": (plot_profiles, {}),
+           "pair_heights": (plot_pair_heights, {})}
+
+
+def figure_pngs(result, names=tuple(FIGURES), dpi: int = 120) -> dict:
+    """{name: PNG bytes} of the named `FIGURES`, each drawn once on its own `Figure` (no
+    pyplot state); the files of `io.report.write_outputs` and the images embedded in the
+    HTML report are these bytes."""
+    import io
+
+    from matplotlib.figure import Figure
+
+    out = {}
+    for name in names:
+        fn, kw = FIGURES[name]
+        fig = Figure(figsize=(7, 6))
+        fn(result, ax=fig.add_subplot(**kw))
+        buf = io.BytesIO()
+        fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight")
+        out[name] = buf.getvalue()
+    return out

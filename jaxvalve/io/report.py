@@ -155,26 +155,12 @@ def write_outputs(result, out_dir, figures: bool = True) -> list[Path]:
                                        cell_data=cd))
         if figures:
             from .html_report import write_html_report
-            paths.extend(_write_figures(result, out))
-            paths.append(write_html_report(result, out / "report.html"))
+            from .plots import figure_pngs
+            pngs = figure_pngs(result)          # drawn once: the files and the report
+            for name, data in pngs.items():
+                paths.append(out / f"{name}.png")
+                paths[-1].write_bytes(data)
+            paths.append(write_html_report(result, out / "report.html", pngs=pngs))
     except OSError as e:
         raise RootFileError(f"cannot write the outputs to '{out}': {e}") from None
     return paths
-
-
-def _write_figures(result, out):
-    from matplotlib.figure import Figure  # no pyplot: no global state, no backend
-
-    from . import plots
-
-    written = []
-    for name, fn, kw in (("valve", plots.plot_valve, {"projection": "3d"}),
-                         ("valve_aortic_view", plots.plot_aortic_view, {}),
-                         ("profiles", plots.plot_profiles, {}),
-                         ("pair_heights", plots.plot_pair_heights, {})):
-        fig = Figure(figsize=(7, 6))
-        fn(result, ax=fig.add_subplot(**kw))
-        p = out / f"{name}.png"
-        fig.savefig(p, dpi=120, bbox_inches="tight")
-        written.append(p)
-    return written

@@ -298,6 +298,15 @@ def _may_fall_back(scene: Scene) -> bool:
                 and scene.precision == "float64")
 
 
+def fallback_scene(scene: Scene) -> Scene | None:
+    """The scene of the barrier path (projected Newton on the barrier law) that a failed
+    closure of ``scene`` falls back on, or None where ``scene`` has no fallback
+    (`_may_fall_back`).  Used by `fall_back` and by the optimiser, which falls back for a
+    whole run."""
+    return scene.replace(contact="barrier", solver="newton") if _may_fall_back(scene) \
+        else None
+
+
 def _falls_back(scene: Scene, loads) -> LoadSolve | None:
     """The first load that failed in a way the barrier path may mend, where ``scene``
     allows a fallback (`close_valve`), else None."""
@@ -338,7 +347,7 @@ def fall_back(valve, scene: Scene, loads, failed: LoadSolve, *, material=None, x
     why = f"{path_name(scene)} failed at {failed.report.pressure:g} mmHg: " \
           f"{failed.report.describe()}"
     say(f"fallback: {why}; closing again on the barrier law (newton solver)")
-    barrier = scene.replace(contact="barrier", solver="newton")
+    barrier = fallback_scene(scene)
     start, swing_s, p_swung = np.asarray(loads[0].x, np.float64), 0.0, 0.0
     if separated(valve, start):
         x = start
