@@ -4,6 +4,8 @@
     python benchmarks/batch.py --benchmark      # the benchmark mesh, h = 0.88 mm
     python benchmarks/batch.py --h 2 --E 0.5 0.8 1 1.25 2 --model neo-hookean
     python benchmarks/batch.py --sizes 1 16 64 256  # throughput against the batch size
+    python benchmarks/batch.py --sizes 1 16 64 256 --rebuilds members  # the same, with the
+                                    # vectorised batch's rebuilds run member by member
     python benchmarks/batch.py --h 2 --E 1 2 0.8 3 --max-steps 5000  # a straggler (0.8 stalls)
 
 One valve is built; the members are closed by `simulate_batch(scene, materials,
@@ -66,7 +68,14 @@ def main(argv=None):
     ap.add_argument("--sizes", type=int, nargs="+", default=None,
                     help="instead: throughput of the default batch path at these batch sizes "
                          "(members with E spread geometrically over --E's range)")
+    ap.add_argument("--rebuilds", choices=("select", "members"), default="select",
+                    help="with --sizes: how the vectorised batch runs its pair-list rebuilds "
+                         "(`vmap_control.branches`): 'select' (the package's), or 'members', "
+                         "member by member, the baseline that 'select' replaced; forces the "
+                         "vectorised path")
     args = ap.parse_args(argv)
+    if args.rebuilds != "select" and not args.sizes:
+        ap.error("--rebuilds needs --sizes")
     h = BENCHMARK_H if args.benchmark else args.h
     scene = Scene(h=h, model=args.model)
     if args.max_steps is not None:
@@ -133,12 +142,22 @@ def main(argv=None):
 def scaling(scene, valve, args):
     """Throughput of `simulate_batch` (its default path on this backend) against the batch
     size B, with sequential `simulate()` calls of the same members as the reference (at most
-    4 of them, timed after compilation).  Each size compiles once (B is a shape)."""
+    4 of them, timed after compilation).  Each size compiles once (B is a shape).  "solve s"
+    includes the closure driver's follow-up of members whose batched attempt failed (their
+    barrier-law fallback or continuation, on the host): "follow-up s" of it, for the
+    members counted under "of which fell back".
+    ``--rebuilds members`` runs the vectorised batch with its rebuilds member by member."""
+    vectorize = None
+    if args.rebuilds == "members":
+        _rebuild_members()
+        vectorize = True
     lo, hi = min(args.E), max(args.E)
     print(f"# {args.model}, h = {scene.h} mm ({len(valve.leaflet.triangles)} triangles a "
           f"leaflet), E spread geometrically over [{lo}, {hi}] MPa, loads "
           f"{scene.he_pressure:g} then {scene.pressure:g} mmHg, rtol {scene.rtol:g}; backend "
-          f"{jax.default_backend()}, {os.cpu_count()} CPU cores")
+          f"{jax.default_backend()}, {os.cpu_count()} CPU cores; batch path "
+          f"{'vectorised' if vectorize or jax.default_backend() != 'cpu' else 'member loop'}"
+          f", rebuilds {args.rebuilds!r}")
     ref_E = np.geomspace(lo, hi, 4) if hi > lo else [lo]
     simulate(scene, valve=valve, throw=False)                      # compiles
     seq = [_simulate_material(scene, valve, material(args.model, e, args.nu)) for e in ref_E]
@@ -147,19 +166,35 @@ def scaling(scene, valve, args):
     print(f"sequential simulate(): {seq_s:.3f} s a scene ({seq_steps:.0f} FIRE steps, "
           f"{1e3 * seq_s / seq_steps:.3f} ms a step), {len(seq)} members timed\n")
     print("| B | compile s | solve s | s / scene | scenes / s | vs sequential | loop steps "
-          "(slowest member, both loads) | ms / loop step | converged |")
-    print("|---|---|---|---|---|---|---|---|---|")
+          "(slowest member, both loads) | ms / loop step | converged | of which fell back | "
+          "follow-up s |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for B in args.sizes:
         mats = [material(args.model, e, args.nu)
                 for e in (np.geomspace(lo, hi, B) if B > 1 else [lo])]
-        r0 = simulate_batch(scene, mats, valve=valve, throw=False)
-        rb = simulate_batch(scene, mats, valve=valve, throw=False)
+        r0 = simulate_batch(scene, mats, valve=valve, throw=False, vectorize=vectorize)
+        rb = simulate_batch(scene, mats, valve=valve, throw=False, vectorize=vectorize)
         solve = rb.timings["solve"]
         loop_steps = sum(max(m.solves[k].steps for m in rb) for k in (0, 1))
         print(f"| {B} | {r0.timings['compile']:.1f} | {solve:.2f} | {solve / B:.4f} | "
               f"{B / solve:.1f} | {(solve / B) / seq_s:.3f} | {loop_steps} | "
-              f"{1e3 * solve / loop_steps:.3f} | {sum(m.converged for m in rb)}/{B} |",
-              flush=True)
+              f"{1e3 * solve / loop_steps:.3f} | {sum(m.converged for m in rb)}/{B} | "
+              f"{sum(any(x.fallback for x in m.solves) for m in rb)} | "
+              f"{rb.timings['follow_up']:.2f} |", flush=True)
+
+
+def _rebuild_members():
+    """Make the vectorised batch run its rebuilds member by member: every
+    ``branches(policy)`` block of the batch code enters ``branches("members")`` instead.
+    For this process only, before anything is traced."""
+    import jaxvalve.batch as batch_module
+    import jaxvalve.solvers.base as base_module
+    from jaxvalve import vmap_control
+
+    def members(_policy):
+        return vmap_control.branches("members")
+
+    batch_module.branches = base_module.branches = members
 
 
 def _simulate_material(scene, valve, mat):

@@ -216,9 +216,10 @@ class BatchResult:
     valve: the `Valve`.  model: the materials' model name.  members: `BatchMember` each.
     timings (s): 'setup' (root, mesh, placement; 0 with a prebuilt valve), 'compile' and
     'solve' (the batched call and the members' own continuation or barrier solves: JAX's
-    compile time and the rest of their wall time), 'metrics' (host: the state checks,
-    stall probes and coaptation metrics), 'total', 'per_scene' (solve / members), 'retries' (capacity
-    retries of overflowing members).  vectorized: how the steps ran (`simulate_batch`)."""
+    compile time and the rest of their wall time), 'follow_up' (the part of 'solve' spent
+    after the batched call, on members' own continuation or barrier solves), 'metrics'
+    (host: the state checks, stall probes and coaptation metrics), 'total', 'per_scene'
+    (solve / members), 'retries' (capacity retries of overflowing members).  vectorized: how the steps ran (`simulate_batch`)."""
 
     scene: Scene
     valve: Any
@@ -513,7 +514,7 @@ def simulate_batch(scene: Scene | None = None, materials=None, *, valve=None,
                               axis=0)))
         say(f"  {n_ok}/{B} first attempts converged; "
             f"{max(wall_s - compile_s, 0.0):.2f} s (+{compile_s:.1f} s compile)")
-    t_driver = 0.0
+    t_driver, c_driver = 0.0, 0.0
     t0 = time.perf_counter()
     out = []
     for i, mat in enumerate(members):
@@ -527,6 +528,7 @@ def simulate_batch(scene: Scene | None = None, materials=None, *, valve=None,
         own = sum(ls.report.wall_s + ls.start_s for ls in loads)
         wall_s += own
         t_driver += own
+        c_driver += sum(ls.report.compile_s for ls in loads)
         compile_s += sum(ls.report.compile_s for ls in loads)
         xs = [ls.x for ls in loads]
         finite = [bool(np.all(np.isfinite(x))) for x in xs]
@@ -541,6 +543,7 @@ def simulate_batch(scene: Scene | None = None, materials=None, *, valve=None,
         f"(+{compile_s:.1f} s compile), {solve_s / B:.2f} s a member")
     t_m = time.perf_counter() - t0 - t_driver
     timings = dict(setup=setup, compile=compile_s, solve=solve_s, metrics=t_m,
+                   follow_up=max(t_driver - c_driver, 0.0),
                    total=time.perf_counter() - t_all, per_scene=solve_s / B, retries=retries)
     res = BatchResult(scene=scene, valve=valve, model=model, members=tuple(out),
                       timings=timings, vectorized=bool(vectorize))

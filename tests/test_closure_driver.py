@@ -159,6 +159,8 @@ def test_simulate_batch_and_stress_share_the_driver_past_a_limit_point():
     assert a.limit_pressure == b.limit_pressure
     assert f"no equilibrium above {a.limit_pressure:.4g}" in rec.cause
     np.testing.assert_allclose(bat[0].x, res.x, rtol=0, atol=1e-9)
+    # the member's continuation past its batched attempt is the batch's follow-up time
+    assert 0 < bat.timings["follow_up"] <= bat.timings["solve"]
 
 
 # ----------------------------------------------------------------------- the fallback
