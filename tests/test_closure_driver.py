@@ -254,9 +254,55 @@ def test_the_fallback_swings_shut_under_a_lighter_load_where_the_smooth_state_is
     assert he.converged and closed.converged
     s = make(smooth_limit=0.2)
     he, closed = closure.close_valve(valve, FALLBACK)
+    # then the watched swing at 3 mmHg (`watched_swing`), unseparated after its first round
     assert s.calls == [("smooth", 3.0), ("smooth", 1.0), ("smooth", pytest.approx(1 / 3)),
-                       ("barrier", 3.0), ("barrier", 80.0)]
+                       ("smooth", 3.0), ("barrier", 3.0), ("barrier", 80.0)]
     assert closure.SWING_FRACTIONS[0] == 1.0     # the barrier path's own swing: he first
+
+
+class WatchedRounds(CrossedOnFail):
+    """`CrossedOnFail` whose FIRE runs of `closure.WATCH_STEPS` steps (the watched swing's
+    rounds) each move the state 0.1 mm on and stop at their cap, separated for the first
+    ``separated_rounds`` rounds and not finite after; the barrier solves log their x0."""
+
+    def __init__(self, separated_rounds=2, **kw):
+        super().__init__(**kw)
+        self.rounds, self.separated_rounds, self.barrier_x0 = 0, separated_rounds, []
+
+    def __call__(self, valve, material, p, *, x0, contact=None, solver=None, **kw):
+        barrier = getattr(contact, "barrier", False)
+        if not barrier and getattr(solver, "max_steps", None) == closure.WATCH_STEPS:
+            self.calls.append(("watched", float(p)))
+            self.rounds += 1
+            x = np.asarray(x0, float) + np.array([0.1, 0.0, 0.0])
+            if self.rounds > self.separated_rounds:
+                x[0, 0] = np.nan
+            return _sol(x, RESULTS.max_steps_reached, closure.WATCH_STEPS)
+        if barrier:
+            self.barrier_x0.append(np.asarray(x0, float).copy())
+        return super().__call__(valve, material, p, x0=x0, contact=contact, solver=solver,
+                                **kw)
+
+
+def test_where_no_swing_converges_separated_the_barrier_starts_from_the_last_separated_fire_state(
+        valve, monkeypatch):
+    """Every swing ends unseparated: the watched FIRE swing at he_pressure, checked every
+    WATCH_STEPS steps, hands its last separated state to the barrier closures (the state
+    after 2 rounds here: 0.2 mm on from the placement), which close from it at 3 mmHg."""
+    scene = FALLBACK.replace(max_steps=1000)        # room for 5 rounds
+    s = _stand_in(monkeypatch, WatchedRounds)(smooth_limit=0.2)
+    he, closed = closure.close_valve(valve, scene)
+    assert s.calls[3:] == [("watched", 3.0)] * 3 + [("barrier", 3.0), ("barrier", 80.0)]
+    np.testing.assert_allclose(s.barrier_x0[0], np.asarray(valve.x_start, float)
+                               + np.array([0.2, 0.0, 0.0]), rtol=0, atol=1e-12)
+    assert he.converged and closed.converged
+    # a swing unseparated after its first round gives no start: the placement
+    s = _stand_in(monkeypatch, WatchedRounds)(smooth_limit=0.2, separated_rounds=0)
+    closure.close_valve(valve, scene)
+    assert s.calls.count(("watched", 3.0)) == 1
+    np.testing.assert_array_equal(s.barrier_x0[0], np.asarray(valve.x_start, float))
+    with pytest.raises(ValueError, match="every must be a positive integer"):
+        closure.watched_swing(valve, scene, valve.x_start, every=0)
 
 
 class BarrierCapped(CrossedOnFail):
