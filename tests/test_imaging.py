@@ -57,6 +57,8 @@ def test_phantom_intensities_and_voxels(scan):
         RootPhantom(spacing=(0.4, 0.4))
     with pytest.raises(ParameterError, match="neighbour_gap"):
         RootPhantom(neighbour_gap=0.0)
+    with pytest.raises(ParameterError, match="sinus_angles"):
+        RootPhantom(sinus_angles=(0.0, 120.0))
 
 
 # ------------------------------------------------------------------- segmentation
@@ -101,6 +103,10 @@ def test_bad_segmentation_input_is_named():
         SegmentParams(wall_hu=200.0)
     with pytest.raises(ParameterError, match="3D"):
         Volume(np.zeros((4, 4)), np.eye(4))
+    nan = np.zeros((4, 4, 4))
+    nan[1, 2, 3] = np.nan
+    with pytest.raises(ParameterError, match="1 values that are not finite"):
+        Volume(nan, np.eye(4))
 
 
 # ------------------------------------------------------------------------ surface
@@ -138,10 +144,10 @@ def test_taubin_smooths_without_shrinking_where_a_laplacian_shrinks():
     assert abs(r1.mean() - 10.0) < 0.05                 # no shrinkage
     assert r1.std() < 0.5 * r0.std()                   # the noise is smoothed
     # the same number of plain Laplacian steps (lam = 0.5 each) shrinks the sphere
-    from jaxvalve.imaging.surface import _neighbour_mean
-    lap = noisy
+    from jaxvalve.imaging.surface import _umbrella
+    M, lap = _umbrella(T, len(noisy)), noisy
     for _ in range(40):
-        lap = lap + 0.5 * (_neighbour_mean(lap, T) - lap)
+        lap = lap + 0.5 * (M @ lap - lap)
     assert np.linalg.norm(lap, axis=1).mean() < 10.0 - 0.1
     with pytest.raises(ParameterError, match="lam < -mu"):
         taubin(P, T, lam=0.6, mu=-0.5)

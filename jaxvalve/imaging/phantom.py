@@ -75,6 +75,9 @@ class RootPhantom:
                                              for s in self.spacing):
             raise ParameterError("phantom spacing must be three voxel sizes in "
                                  f"[0.05, 5] mm; got {self.spacing!r}")
+        if len(self.sinus_angles) != 3 or not np.all(np.isfinite(self.sinus_angles)):
+            raise ParameterError("phantom sinus_angles must be three finite angles (degrees); "
+                                 f"got {self.sinus_angles!r}")
         if len(self.sinus_bulge) != 3 or min(self.sinus_bulge) < 0:
             raise ParameterError("phantom sinus_bulge must be three lengths >= 0 (mm); got "
                                  f"{self.sinus_bulge!r}")

@@ -70,11 +70,14 @@ class SegmentParams:
 @dataclasses.dataclass(frozen=True, eq=False)
 class Segmentation:
     """mask (I, J, K) bool: the aorta's lumen.  seed (3,) int: its voxel.  threshold:
-    the lower level of the window, HU.  report: the steps' parameters and results."""
+    the lower level of the window, HU.  image (I, J, K) float32: the smoothed image that
+    was thresholded (the surface is its level set).  report: the steps' parameters and
+    results."""
 
     mask: np.ndarray
     seed: np.ndarray
     threshold: float
+    image: np.ndarray
     report: dict
 
 
@@ -159,11 +162,13 @@ def segment(volume: Volume, seed=None, params: SegmentParams = SegmentParams(),
     data = np.asarray(volume.data, np.float32)
     if params.smooth_mm > 0:
         data = ndimage.gaussian_filter(data, params.smooth_mm / volume.spacing)
-    # the blood's level: the median round the seed (a ball of 3 mm)
-    near = _ball(volume.spacing, 3.0)
-    lo = np.maximum(seed - np.array(near.shape) // 2, 0)
-    blk = data[tuple(slice(a, a + s) for a, s in zip(lo, near.shape))]
-    blood = float(np.median(blk[near[tuple(slice(0, s) for s in blk.shape)]]))
+    # the blood's level: the median within 3 mm of the seed
+    r = np.ceil(3.0 / volume.spacing).astype(int)
+    lo, hi = np.maximum(seed - r, 0), np.minimum(seed + r + 1, volume.shape)
+    g = np.meshgrid(*[(np.arange(a, b) - c) * d for a, b, c, d
+                      in zip(lo, hi, seed, volume.spacing)], indexing="ij")
+    near = sum(x ** 2 for x in g) <= 9.0
+    blood = float(np.median(data[tuple(slice(a, b) for a, b in zip(lo, hi))][near]))
     if blood < params.min_blood_hu:
         raise ParameterError(f"the seed {seed.tolist()} lies in {blood:.0f} HU, below "
                              f"min_blood_hu = {params.min_blood_hu:g}: not in contrast blood")
@@ -189,4 +194,4 @@ def segment(volume: Volume, seed=None, params: SegmentParams = SegmentParams(),
     report["separate"] = dict(voxels=int(mask.sum()),
                               removed_voxels=int(grown.sum() - mask.sum()))
     report["volume_ml"] = float(mask.sum() * np.prod(volume.spacing) / 1000.0)
-    return Segmentation(mask=mask, seed=seed, threshold=threshold, report=report)
+    return Segmentation(mask=mask, seed=seed, threshold=threshold, image=data, report=report)

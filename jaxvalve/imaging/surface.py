@@ -17,11 +17,11 @@ __all__ = ["wall_surface", "taubin", "mesh_quality", "surface_distance"]
 
 
 def wall_surface(volume: Volume, seg: Segmentation, *, edge_mm: float | None = None,
-                 smooth_iterations: int = 10, smooth_mm: float | None = None):
-    """The lumen's wall: (points (P, 3) LPS mm, triangles (T, 3) int).  edge_mm: the
+                 smooth_iterations: int = 10):
+    """The lumen's wall: (points (P, 3) LPS mm, triangles (T, 3) int), the level set of
+    the segmentation's smoothed image (``seg.image``) at its threshold.  edge_mm: the
     target edge length (default the smallest voxel size): marching cubes steps over
-    round(edge_mm / smallest spacing) voxels.  smooth_iterations: Taubin passes (0: none).
-    smooth_mm: the image's pre-smoothing (default the segmentation's)."""
+    round(edge_mm / smallest spacing) voxels.  smooth_iterations: Taubin passes (0: none)."""
     from scipy import ndimage
     from skimage import measure
     sp = volume.spacing
@@ -33,10 +33,10 @@ def wall_surface(volume: Volume, seg: Segmentation, *, edge_mm: float | None = N
     if not (isinstance(smooth_iterations, int) and 0 <= smooth_iterations <= 200):
         raise ParameterError(f"smooth_iterations must be an integer in [0, 200]; got "
                              f"{smooth_iterations!r}")
-    s = seg.report["params"]["smooth_mm"] if smooth_mm is None else smooth_mm
-    data = np.asarray(volume.data, np.float32)
-    if s > 0:
-        data = ndimage.gaussian_filter(data, s / sp)
+    data = np.asarray(seg.image, np.float32)
+    if data.shape != volume.shape:
+        raise ParameterError(f"the segmentation's image {data.shape} is not on the volume's "
+                             f"grid {volume.shape}")
     # only the mask's own boundary: outside it (one voxel on) the image is set below the
     # level, so touching structures left out by the segmentation give no surface
     region = ndimage.binary_dilation(seg.mask, iterations=1)
@@ -68,17 +68,16 @@ def _largest_piece(pts, tris):
     return pts[used], new[keep]
 
 
-def _neighbour_mean(pts, tris):
-    """The mean of each vertex's edge neighbours (P, 3) (umbrella operator)."""
-    from scipy.sparse import coo_matrix
-    n = len(pts)
-    e = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
-    e = np.unique(np.sort(e, axis=1), axis=0)
+def _umbrella(tris, n):
+    """The mean-of-edge-neighbours operator (sparse (n, n)): (A @ pts) is each vertex's
+    neighbours' mean (the umbrella operator)."""
+    from scipy.sparse import coo_matrix, diags
+    e = _edges(tris)[0]
     r = np.concatenate([e[:, 0], e[:, 1]])
     c = np.concatenate([e[:, 1], e[:, 0]])
     A = coo_matrix((np.ones(len(r)), (r, c)), shape=(n, n)).tocsr()
     deg = np.asarray(A.sum(axis=1)).ravel()
-    return (A @ pts) / np.maximum(deg, 1)[:, None]
+    return diags(1.0 / np.maximum(deg, 1)) @ A
 
 
 def taubin(pts, tris, *, iterations=10, lam=0.5, mu=-0.53):
@@ -89,9 +88,10 @@ def taubin(pts, tris, *, iterations=10, lam=0.5, mu=-0.53):
         raise ParameterError(f"taubin needs 0 < lam < -mu; got lam = {lam!r}, mu = {mu!r}")
     pts = np.asarray(pts, float).copy()
     fixed = _boundary_vertices(tris, len(pts))
+    M = _umbrella(tris, len(pts))
     for _ in range(iterations):
         for f in (lam, mu):
-            d = _neighbour_mean(pts, tris) - pts
+            d = M @ pts - pts
             d[fixed] = 0.0
             pts = pts + f * d
     return pts

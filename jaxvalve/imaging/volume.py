@@ -24,6 +24,10 @@ class Volume:
         if d.ndim != 3 or min(d.shape) < 2:
             raise ParameterError(f"a CT volume must be 3D with at least 2 voxels along "
                                  f"each axis; got an array of shape {d.shape}")
+        bad = int(np.sum(~np.isfinite(d)))
+        if bad:
+            raise ParameterError(f"a CT volume holds {bad} values that are not finite (NaN "
+                                 "or inf)")
         a = np.asarray(self.affine, float)
         if a.shape != (4, 4) or not np.all(np.isfinite(a)):
             raise ParameterError(f"a volume's affine must be a finite 4 x 4 matrix; got "

@@ -44,9 +44,6 @@ def read_volume(path) -> Volume:
         data = data[..., 0]
     if data.ndim != 3 or min(data.shape) < 2:
         raise VolumeFileError(f"{path}: not a 3D volume (array of shape {data.shape})")
-    if not np.all(np.isfinite(data)):
-        raise VolumeFileError(f"{path}: holds {int(np.sum(~np.isfinite(data)))} values that "
-                              "are not finite")
     return _volume(path, data, _FLIP @ np.asarray(img.affine, float))
 
 

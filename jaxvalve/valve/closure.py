@@ -216,16 +216,12 @@ def swing_shut(valve, scene: Scene, x, *, material=None, ref=None, say=_quiet,
     its smooth-law equilibrium, mmHg; 0 for the placement), from which the first barrier
     closure continues where it lies below that closure's load."""
     material = scene.material() if material is None else material
-    start = scene.replace(contact="smooth", solver="fire", rtol=max(scene.rtol, 1e-4))
     for f in fractions:
         p = scene.he_pressure * f
         say(f"swinging shut at {p:.3g} mmHg (fire solver, smooth contact), the start of the "
             "barrier closures")
         t0 = time.perf_counter()
-        sol = V.close(valve, material, p, solver=start.make_solver(),
-                      contact=start.contact_law(), thickness=scene.thickness,
-                      fibre_angle=np.deg2rad(scene.fibre_angle), bending=scene.bending_law(),
-                      x0=x, throw=False, check_state=True, ref=ref)
+        sol = _smooth_fire(valve, scene, material, p, x, ref, check_state=True)
         y = np.asarray(sol.x, np.float64)
         ok = sol.converged and separated(valve, y)
         say(f"  {sol.describe()}; {time.perf_counter() - t0:.2f} s"
@@ -259,18 +255,13 @@ def watched_swing(valve, scene: Scene, x, *, material=None, ref=None, say=_quiet
         raise ValueError(f"every must be a positive integer; got {every!r}")
     material = scene.material() if material is None else material
     every = min(every, scene.max_steps)
-    start = scene.replace(contact="smooth", solver="fire", rtol=max(scene.rtol, 1e-4),
-                          max_steps=every)
     p = scene.he_pressure
     say(f"swinging shut at {p:.3g} mmHg (fire solver, smooth contact), checked every "
         f"{every} steps, the start of the barrier closures")
     t0, best, steps = time.perf_counter(), None, 0
     y = np.asarray(x)
     while steps < scene.max_steps:
-        sol = V.close(valve, material, p, solver=start.make_solver(),
-                      contact=start.contact_law(), thickness=scene.thickness,
-                      fibre_angle=np.deg2rad(scene.fibre_angle),
-                      bending=scene.bending_law(), x0=y, throw=False, ref=ref)
+        sol = _smooth_fire(valve, scene, material, p, y, ref, max_steps=every)
         y = np.asarray(sol.x, np.float64)
         steps += int(sol.stats.steps)
         if not separated(valve, y):
@@ -284,6 +275,17 @@ def watched_swing(valve, scene: Scene, x, *, material=None, ref=None, say=_quiet
     say(f"  the state after {best[1]} steps is the last separated one ({steps} steps run); "
         f"{time.perf_counter() - t0:.2f} s")
     return best[0]
+
+
+def _smooth_fire(valve, scene, material, p, x, ref, *, check_state=False, max_steps=None):
+    """One FIRE solve on the smooth penalty law at p mmHg from x (to a relative residual
+    of at most 1e-4; ``max_steps`` default the scene's): the swings of the barrier path."""
+    start = scene.replace(contact="smooth", solver="fire", rtol=max(scene.rtol, 1e-4),
+                          max_steps=scene.max_steps if max_steps is None else max_steps)
+    return V.close(valve, material, p, solver=start.make_solver(),
+                   contact=start.contact_law(), thickness=scene.thickness,
+                   fibre_angle=np.deg2rad(scene.fibre_angle), bending=scene.bending_law(),
+                   x0=x, throw=False, check_state=check_state, ref=ref)
 
 
 def _timed_swing(valve, scene, x, material, say, fractions=SWING_FRACTIONS):
