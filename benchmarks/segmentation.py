@@ -22,9 +22,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
 
+from jaxvalve.geometry.surface_query import distance_to_surface  # noqa: E402
 from jaxvalve.imaging.phantom import RootPhantom, phantom_volume, true_wall  # noqa: E402
 from jaxvalve.imaging.segment import segment  # noqa: E402
-from jaxvalve.imaging.surface import mesh_quality, surface_distance, wall_surface  # noqa: E402
+from jaxvalve.imaging.surface import mesh_quality, wall_surface  # noqa: E402
 
 
 def _spacing(text):
@@ -64,8 +65,8 @@ def main(argv=None):
 
             def inner(x):
                 return (x[:, 2] > lo[2] + 1.5) & (x[:, 2] < hi[2] - 1.5)
-            d1 = surface_distance(P[inner(P)], truth)
-            d2 = surface_distance(truth[0][inner(truth[0])], (P, T))
+            d1 = distance_to_surface(P[inner(P)], *truth)
+            d2 = distance_to_surface(truth[0][inner(truth[0])], P, T)
             q = mesh_quality(P, T)
             met = max(d1.mean(), d2.mean()) < 0.3 and max(np.percentile(d1, 95),
                                                           np.percentile(d2, 95)) < 1.0

@@ -179,7 +179,7 @@ class Scene:
             raise ParameterError("root must be 'benchmark' or (surface_file, landmarks_file); "
                                  f"got {self.root!r}") from None
         from .io.files import read_root
-        return read_root(surface, landmarks)
+        return read_root(surface, landmarks, sutured_length=self.template().sutured_length)
 
     def contact_law(self):
         from .contact import BarrierContact, PaperContact

@@ -7,10 +7,10 @@ from __future__ import annotations
 import argparse
 import sys
 
-from . import membrane, optimize, simulate, sweep
+from . import membrane, optimize, phantom, segment, simulate, sweep
 
-SUBCOMMANDS = {"membrane": membrane, "optimize": optimize, "simulate": simulate,
-               "sweep": sweep}
+SUBCOMMANDS = {"membrane": membrane, "optimize": optimize, "phantom": phantom,
+               "segment": segment, "simulate": simulate, "sweep": sweep}
 
 
 def enable_compilation_cache():

@@ -265,23 +265,26 @@ def signed_plane_distance(p, a, b, c):
     """Signed distance (mm) of `p` to the plane of triangle (a, b, c): (p - a) . n_T."""
     return jnp.sum((p - a) * triangle_normal(a, b, c), axis=-1)
 # ----------------------------------------------------------------- NumPy reference (tests)
-def point_triangle_distance_np(p, a, b, c):
+def point_triangle_distance_np(p, a, b, c, *, return_point=False):
     """Distances (K,) mm from points p (K, 3) to the closed triangles a, b, c (K, 3): the
-    project's one NumPy point-triangle distance (the wall check of `jaxvalve.geometry.root`, and
-    the tests' reference for the JAX distances).  The distance to the plane where the
-    point's projection falls inside the triangle, else to the nearest edge; a degenerate
-    triangle (zero area: a segment or a point) is measured by its edges alone.  Written
-    apart from `closest_point_soa` (edges and plane, not Voronoi regions), so that the
-    two check each other."""
+    project's one NumPy point-triangle distance (the wall queries of
+    `jaxvalve.geometry.surface_query`, and the tests' reference for the JAX distances).
+    The distance to the plane where the point's projection falls inside the triangle,
+    else to the nearest edge; a degenerate triangle (zero area: a segment or a point) is
+    measured by its edges alone.  With ``return_point`` also the closest points (K, 3).
+    Written apart from `closest_point_soa` (edges and plane, not Voronoi regions), so
+    that the two check each other."""
     p, a, b, c = (np.asarray(v, dtype=np.float64) for v in (p, a, b, c))
 
     def seg(u, v):
         uv = v - u
         L2 = np.einsum("nd,nd->n", uv, uv)
         t = np.clip(np.einsum("nd,nd->n", p - u, uv) / np.where(L2 > 0, L2, 1.0), 0.0, 1.0)
-        return np.linalg.norm(p - u - t[:, None] * uv, axis=1)
+        q = u + t[:, None] * uv
+        return np.linalg.norm(p - q, axis=1), q
 
-    edge = np.minimum(np.minimum(seg(a, b), seg(b, c)), seg(c, a))
+    (d1, q1), (d2, q2), (d3, q3) = seg(a, b), seg(b, c), seg(c, a)
+    edge = np.minimum(np.minimum(d1, d2), d3)
     n = np.cross(b - a, c - a)
     nn = np.einsum("nd,nd->n", n, n)
     ok = nn > 0
@@ -290,5 +293,11 @@ def point_triangle_distance_np(p, a, b, c):
     lc = np.einsum("nd,nd->n", np.cross(b - a, w), n) / nn_
     lb = np.einsum("nd,nd->n", np.cross(w, c - a), n) / nn_
     inside = ok & (lb >= 0) & (lc >= 0) & (lb + lc <= 1)
-    plane = np.abs(np.einsum("nd,nd->n", w, n)) / np.sqrt(nn_)
-    return np.where(inside, plane, edge)
+    height = np.einsum("nd,nd->n", w, n) / np.sqrt(nn_)
+    d = np.where(inside, np.abs(height), edge)
+    if not return_point:
+        return d
+    q_edge = np.where((d1 <= np.minimum(d2, d3))[:, None], q1,
+                      np.where((d2 <= d3)[:, None], q2, q3))
+    q_plane = p - (height / np.sqrt(nn_))[:, None] * n
+    return d, np.where(inside[:, None], q_plane, q_edge)

@@ -107,10 +107,9 @@ from typing import Any
 
 import numpy as np
 from scipy.optimize import brentq
-from scipy.spatial import cKDTree
 
-from ..contact.geometry import point_triangle_distance_np
 from ..errors import MeshError, ParameterError
+from .surface_query import distance_to_surface
 
 __all__ = [
     "AorticRoot",
@@ -391,40 +390,6 @@ class AorticRoot:
         w = "none" if self.wall is None else f"{len(self.wall[0])} points"
         return (f"AorticRoot(name={self.name!r}, path points={k}, path lengths="
                 f"{np.round(self.path_lengths, 3).tolist()} mm, wall={w})")
-
-
-# ====================================================================== surface distance
-def distance_to_surface(points, surface_points, triangles):
-    """Exact Euclidean distance (mm) from each point (N, 3) to a triangle mesh.
-
-    Candidate triangles are those with a vertex within (nearest-vertex distance + longest
-    edge) of the point, which always contains the closest triangle.
-    """
-    p = _as_points(np.reshape(np.asarray(points, dtype=np.float64), (-1, 3)), "points",
-                   "(N, 3)")
-    V = np.asarray(surface_points, dtype=np.float64)
-    T = np.asarray(triangles, dtype=np.int64)
-    tree = cKDTree(V)
-    dv, _ = tree.query(p)
-    e = V[T[:, [1, 2, 0]]] - V[T]
-    emax = float(np.sqrt(np.max(np.einsum("mkd,mkd->mk", e, e))))
-    # vertex -> incident triangles (CSR)
-    flat = T.ravel()
-    order = np.argsort(flat, kind="stable")
-    starts = np.searchsorted(flat[order], np.arange(len(V) + 1))
-    tri_of = order // 3
-    qi, ti = [], []
-    for n, verts in enumerate(tree.query_ball_point(p, dv + emax + 1e-9)):
-        if not verts:
-            continue
-        cand = np.unique(np.concatenate([tri_of[starts[v]:starts[v + 1]] for v in verts]))
-        qi.append(np.full(len(cand), n))
-        ti.append(cand)
-    qi, ti = np.concatenate(qi), np.concatenate(ti)
-    d = point_triangle_distance_np(p[qi], V[T[ti, 0]], V[T[ti, 1]], V[T[ti, 2]])
-    out = np.full(len(p), np.inf)
-    np.minimum.at(out, qi, d)
-    return out
 
 
 # ====================================================================== benchmark root

@@ -33,9 +33,9 @@ __all__ = ["RootPhantom", "phantom_volume", "true_wall"]
 class RootPhantom:
     """Geometry and intensities of the phantom (module docstring).  Angles in degrees."""
 
-    r_lvot: float = 10.5
-    r_stj: float = 12.5
-    sinus_height: float = 18.0          # annulus (its mean level, z = 0) to the STJ
+    r_lvot: float = 12.0
+    r_stj: float = 13.0
+    sinus_height: float = 20.0          # annulus (its mean level, z = 0) to the STJ
     sinus_bulge: tuple = (4.5, 3.2, 2.0)   # the three sinuses' outward bulge, mm
     sinus_angles: tuple = (90.0, 210.0, 330.0)  # their centres
     annulus_tilt: float = 3.0           # the annulus plane's rise across the root, mm
@@ -46,7 +46,7 @@ class RootPhantom:
     neighbour_radius: float = 9.0
     neighbour_angle: float = 150.0      # direction of the neighbour from the aortic axis
     neighbour_gap: float = 0.5          # lumen to lumen, mm
-    neighbour_from: float = 16.0        # the neighbour spans z >= this
+    neighbour_from: float = 22.0        # the neighbour spans z >= this
     margin: float = 6.0                 # fat round the outermost structure, mm
     wall_mm: float = 1.5
     myocardium_mm: float = 8.0
@@ -117,6 +117,23 @@ class RootPhantom:
         theta = np.arctan2(p[..., 1], p[..., 0])
         rho = np.hypot(p[..., 0], p[..., 1])
         return rho - self.lumen_radius(theta, p[..., 2])
+
+    def landmarks(self):
+        """The true valve landmarks on the wall, mm: ``(commissures (3, 3), nadirs (3,
+        3))``.  The commissures stand at the sinotubular junction midway (in angle)
+        between neighbouring sinuses, the nadirs at the annulus below each sinus's
+        centre; commissure i and i + 1 flank nadir i, counter-clockwise seen from the
+        aorta (increasing angle about +z)."""
+        ang = np.sort(np.deg2rad(np.asarray(self.sinus_angles, float)) % (2 * np.pi))
+        gaps = np.diff(np.concatenate([ang, ang[:1] + 2 * np.pi]))
+        com_t = ang - 0.5 * np.roll(gaps, 1)        # between sinus i - 1 and sinus i
+        z_c = self.annulus_z(com_t) + self.sinus_height
+        z_n = self.annulus_z(ang)
+
+        def at(t, z):
+            r = self.lumen_radius(t, z)
+            return np.stack([r * np.cos(t), r * np.sin(t), z], -1)
+        return at(com_t, z_c), at(ang, z_n)
 
     def neighbour_centre(self):
         d = self.r_stj + self.neighbour_gap + self.neighbour_radius

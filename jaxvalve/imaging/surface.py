@@ -3,8 +3,8 @@ segmentation's half-maximum level and within the mask (so the surface passes bet
 voxels where the blurred intensity crosses that level, not along voxel faces), in
 patient coordinates; the largest connected piece; Taubin smoothing, which removes noise
 without shrinking the surface (a Laplacian step followed by a negative one); and a
-coarser grid for a target edge length.  `mesh_quality` measures the result and
-`surface_distance` compares two surfaces (the phantom's true wall, in the checks)."""
+coarser grid for a target edge length.  `mesh_quality` measures the result;
+`jaxvalve.geometry.surface_query.distance_to_surface` compares it with another surface."""
 from __future__ import annotations
 
 import numpy as np
@@ -13,7 +13,7 @@ from ..errors import ParameterError
 from .segment import Segmentation
 from .volume import Volume
 
-__all__ = ["wall_surface", "taubin", "mesh_quality", "surface_distance"]
+__all__ = ["wall_surface", "taubin", "mesh_quality"]
 
 
 def wall_surface(volume: Volume, seg: Segmentation, *, edge_mm: float | None = None,
@@ -133,23 +133,3 @@ def mesh_quality(pts, tris) -> dict:
                                    share_below_20=float(np.mean(smallest < 20.0))),
                 boundary_edges=int(np.sum(count == 1)),
                 non_manifold_edges=int(np.sum(count > 2)))
-
-
-def surface_distance(points, surface, *, k: int = 8) -> np.ndarray:
-    """The distance (mm) from each of ``points`` (N, 3) to the triangle mesh ``surface``
-    = (points (P, 3), triangles (T, 3)): the exact point-triangle distance
-    (`contact.geometry.point_triangle_distance_np`) to the ``k`` triangles whose
-    centroids lie nearest, which is exact where the mesh is fine against the distance."""
-    from scipy.spatial import cKDTree
-    from ..contact.geometry import point_triangle_distance_np
-    P, T = np.asarray(surface[0], float), np.asarray(surface[1])
-    x = np.asarray(points, float)
-    cen = P[T].mean(axis=1)
-    _, idx = cKDTree(cen).query(x, k=min(k, len(T)))
-    idx = idx.reshape(len(x), -1)
-    tri = P[T[idx]]                                    # (N, k, 3, 3)
-    d = point_triangle_distance_np(np.repeat(x[:, None], idx.shape[1], 1).reshape(-1, 3),
-                                   tri[..., 0, :].reshape(-1, 3),
-                                   tri[..., 1, :].reshape(-1, 3),
-                                   tri[..., 2, :].reshape(-1, 3))
-    return np.asarray(d).reshape(idx.shape).min(axis=1)

@@ -309,13 +309,20 @@ def _default_axis(com, paths):
     return n if depth > 0 else -n
 
 
-def read_root(surface_path, landmarks_path, *, wall_tolerance=None):
+def read_root(surface_path, landmarks_path, *, wall_tolerance=None, sutured_length=None):
     """Read a patient root: a surface mesh (any meshio format) and a landmarks file.
 
     Coordinates are converted to mm using the landmarks' ``units``.  With
     ``wall_tolerance`` (mm), the commissures and path points must lie within that
-    distance of the surface (else `SurfaceFileError`).  Returns an `AorticRoot`.
+    distance of the surface (else `SurfaceFileError`).  A 3D Slicer markups file
+    (``.mrk.json``, LPS or RAS mm, the surface in the same frame) gives the commissures
+    and the suture path curves, or the nadirs, from which the paths are fitted to
+    ``sutured_length`` (mm; `jaxvalve.geometry.landmarks`).  Returns an `AorticRoot`.
     """
+    from .markups import is_markups_file
+    if is_markups_file(landmarks_path):
+        return _read_markups_root(surface_path, landmarks_path, wall_tolerance,
+                                  sutured_length)
     lm = read_landmarks(landmarks_path)
     lp = pathlib.Path(landmarks_path)
     pts, tri, _ = read_surface(surface_path)
@@ -354,6 +361,29 @@ def read_root(surface_path, landmarks_path, *, wall_tolerance=None):
                 f"surface file '{surface_path}': the landmarks of '{lp}' lie up to "
                 f"{d.max():.3g} mm from the wall (wall_tolerance {tol:g} mm); the commissures "
                 "and suturing paths must lie on the aortic wall (check units and frames)")
+    return root
+
+
+def _read_markups_root(surface_path, landmarks_path, wall_tolerance, sutured_length):
+    from ..geometry.landmarks import landmarks_from_markups, root_from_landmarks
+    from .markups import read_markups
+    lp = pathlib.Path(landmarks_path)
+    pts, tri, _ = read_surface(surface_path)
+    try:
+        lm = landmarks_from_markups(read_markups(lp), source=f"markups file '{lp}'")
+        root, _ = root_from_landmarks((pts, tri), lm, sutured_length=sutured_length,
+                                      name=lp.name[:-len(".mrk.json")] or "patient")
+    except LandmarksFileError:
+        raise
+    except JaxvalveError as e:
+        raise LandmarksFileError(str(e) if str(e).startswith("markups file") else
+                                 f"markups file '{lp}': {e}") from None
+    if wall_tolerance is not None:
+        d = distance_to_surface(np.concatenate([root.commissures] + list(root.paths)),
+                                pts, tri)
+        if d.max() > float(wall_tolerance):
+            raise SurfaceFileError(f"surface file '{surface_path}': the landmarks of '{lp}' "
+                                   f"lie up to {d.max():.3g} mm from the wall")
     return root
 
 

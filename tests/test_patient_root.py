@@ -1,0 +1,136 @@
+"""From a CT scan to a closed valve: `jaxvalve phantom`, `jaxvalve segment` (surface, mask,
+QC figure, JSON, landmarks), `jaxvalve simulate --root` on its outputs, and the closure in
+the segmented asymmetric root with every model, against the symmetric benchmark root;
+notebooks/03_patient_root.ipynb runs here too (h = 2 mm: tiny meshes, since compile time
+dominates)."""
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from jaxvalve.cli import main
+from jaxvalve.io.markups import read_markups
+from jaxvalve.io.plots import COINCIDE_MM, profile_distance
+from jaxvalve.io.volumes import read_mask, read_volume
+from jaxvalve.scene import Scene
+from jaxvalve.simulation import simulate
+from jaxvalve.valve import leaflet_crossings
+from stress_suite import ipctk_intersects
+from test_notebooks import run_notebook
+
+H = 2.0                 # leaflet mesh size, mm
+#: closing load of these tests, mmHg: the effective-height load (the closure at 80 mmHg in
+#: this root is not yet robust: docs/known-limits.md, "Patient roots")
+P = 3.0
+SUTURED = Scene().template().sutured_length
+NOTEBOOK = Path(__file__).resolve().parent.parent / "notebooks" / "03_patient_root.ipynb"
+
+
+@pytest.fixture(scope="module")
+def patient(tmp_path_factory):
+    d = tmp_path_factory.mktemp("patient")
+    assert main(["phantom", "--out", str(d / "scan"), "--spacing", "0.8", "0.8", "1.0"]) == 0
+    assert main(["segment", str(d / "scan" / "ct.nii.gz"), "--out", str(d / "out"),
+                 "--landmarks", str(d / "scan" / "landmarks_true.mrk.json")]) == 0
+    return d
+
+
+def test_segment_writes_surface_mask_figure_report_and_landmarks(patient):
+    out = patient / "out"
+    rep = json.loads((out / "segmentation.json").read_text())
+    assert rep["segmentation"]["seed"]["source"] == "hough"
+    assert rep["segmentation"]["params"]["separation_mm"] == 2.0
+    s = rep["surface"]
+    assert s["file"] == "root.stl" and s["non_manifold_edges"] == 0
+    assert 0.6 < s["edge_mm"]["mean"] < 1.2                  # the 0.8 mm voxels
+    # the mask on the scan's grid, the size of the lumen it reports
+    mask, affine = read_mask(out / "mask.nii.gz")
+    vol = read_volume(patient / "scan" / "ct.nii.gz")
+    assert mask.shape == vol.shape
+    np.testing.assert_allclose(affine, vol.affine, atol=1e-4)
+    assert mask.sum() * np.prod(vol.spacing) / 1000 == pytest.approx(
+        rep["segmentation"]["volume_ml"], rel=1e-9)
+    assert (out / "qc.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # landmarks: projected onto the wall, the paths fitted to the template's sutured edge
+    lm = rep["landmarks"]
+    assert max(lm["commissure_wall_distance_mm"]) < 0.5
+    np.testing.assert_allclose(lm["path_length_mm"], SUTURED, rtol=2e-3)
+    kinds = [m.kind for m in read_markups(out / "landmarks.mrk.json")]
+    assert kinds == ["Fiducial", "Curve", "Curve", "Curve"]
+
+
+def test_segment_refuses_bad_input_before_any_work(tmp_path, capsys):
+    assert main(["segment", str(tmp_path / "none.nii.gz"), "--out", str(tmp_path / "o")]) == 2
+    assert "none.nii.gz" in capsys.readouterr().err
+    bad = tmp_path / "bad.mrk.json"
+    bad.write_text('{"markups": [{"type": "Fiducial", "controlPoints": []}]}')
+    assert main(["segment", str(tmp_path / "none.nii.gz"), "--out", str(tmp_path / "o"),
+                 "--landmarks", str(bad)]) == 2
+    assert "three commissures" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.fixture(scope="module")
+def nb03():
+    """The notebook: its own scan, segmentation, landmarks and the StVK closure in the
+    phantom root, with the benchmark root's beside it."""
+    return run_notebook(NOTEBOOK, {"JAXVALVE_NB_H": str(H), "JAXVALVE_NB_PRESSURE": str(P)})
+
+
+@pytest.fixture(scope="module")
+def closed(patient, nb03):
+    """Every model in the root that `jaxvalve segment` wrote; StVK is the notebook's."""
+    root = (str(patient / "out" / "root.stl"), str(patient / "out" / "landmarks.mrk.json"))
+    out = {m: simulate(Scene(root=root, h=H, model=m, pressure=P), throw=False)
+           for m in ("neo-hookean", "gent", "mass-spring")}
+    # and through the command line, as a user runs it
+    assert main(["simulate", "--root", *root, "--model", "mass-spring", "--h", str(H),
+                 "--pressure", str(P), "--out", str(patient / "closed"), "--no-figures"]) == 0
+    out["stvk"] = nb03["res"]
+    return out
+
+
+def test_notebook03_segments_within_target_and_fits_the_paths(nb03):
+    d = nb03["d"]
+    assert d.mean() < 0.3 and np.percentile(d, 95) < 1.0
+    np.testing.assert_allclose(nb03["report"]["path_length_mm"], SUTURED, rtol=2e-3)
+
+
+def test_cli_simulate_closes_the_valve_in_the_segmented_root(patient, closed):
+    m = json.loads((patient / "closed" / "metrics.json").read_text())
+    assert m["converged"] and m["model"] == "mass-spring"
+    assert m["scene"]["root"][1].endswith("landmarks.mrk.json")
+
+
+@pytest.mark.parametrize("model", ["stvk", "neo-hookean", "gent", "mass-spring"])
+def test_valve_closes_in_the_segmented_phantom_root(closed, model):
+    res = closed[model]
+    assert res.converged, [s.describe() for s in res.solves]
+    assert res.scene.pressure == P
+    m = res.metrics
+    assert m.h_cc > 1.0 and m.ncca_valve > 0.05            # the leaflets coapt
+    for x in (res.x_he, res.x):                   # no crossing, by two independent checks
+        assert len(leaflet_crossings(res.valve, x)) == 0
+        assert ipctk_intersects(res.valve, x) is False
+
+
+def _spread(res):
+    """(largest distance between two leaflets' coaptation profiles on the template, mm;
+    spread of the leaflets' coaptation areas relative to their mean)."""
+    m = res.metrics
+    prof = [np.asarray(s).reshape(-1, 2, 2) for s in m.profile]
+    return profile_distance(prof), np.ptp(m.zone_area) / np.mean(m.zone_area)
+
+
+def test_unequal_sinuses_give_unequal_leaflets(closed, nb03):
+    # the symmetric benchmark root closes its three leaflets alike (same template, mesh,
+    # model and solver: the notebook's comparison); the phantom's three differ
+    bench = nb03["bench"]
+    assert bench.converged
+    d, a = _spread(bench)
+    assert d < COINCIDE_MM and a < 0.01
+    # (measured: profiles 3.4-4.3 mm apart, coaptation areas spread by 2.8-16 %)
+    for model, res in closed.items():
+        d, a = _spread(res)
+        assert d > 20 * COINCIDE_MM and a > 0.02, (model, d, a)
