@@ -20,8 +20,8 @@ from stress_suite import ipctk_intersects
 from test_notebooks import run_notebook
 
 H = 2.0                 # leaflet mesh size, mm
-#: closing load of these tests, mmHg: the effective-height load (the closure at 80 mmHg in
-#: this root is not yet robust: docs/known-limits.md, "Patient roots")
+#: closing load of these tests, mmHg: the effective-height load (the valve does not yet
+#: close at 80 mmHg in this root: docs/known-limits.md, "Patient roots")
 P = 3.0
 SUTURED = Scene().template().sutured_length
 NOTEBOOK = Path(__file__).resolve().parent.parent / "notebooks" / "03_patient_root.ipynb"
@@ -130,7 +130,7 @@ def test_unequal_sinuses_give_unequal_leaflets(closed, nb03):
     assert bench.converged
     d, a = _spread(bench)
     assert d < COINCIDE_MM and a < 0.01
-    # (measured: profiles 3.4-4.3 mm apart, coaptation areas spread by 2.8-16 %)
+    # (measured: profiles 3.5-4.3 mm apart, coaptation areas spread by 5-6 %)
     for model, res in closed.items():
         d, a = _spread(res)
         assert d > 20 * COINCIDE_MM and a > 0.02, (model, d, a)

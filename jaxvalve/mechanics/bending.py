@@ -16,21 +16,12 @@ changes the low-pressure shape (h_E) by about a millimetre (docs/mechanics.md,
 off at no cost; `None` in `Params` skips it entirely).
 
 Energy, over interior edges e with adjacent triangles T1, T2 (reference areas A1, A2,
-reference length L_e) and current unit normals n1, n2 (dihedral angle theta_e, c_e = n1 .
-n2 = cos theta_e):
+reference length L_e) and current unit normals n1, n2 (dihedral angle theta_e):
 
-    E_b = D sum_e 2 tan^2(theta_e / 2) L_e^2 / (A1 + A2)
-        = D sum_e 2 (1 - c_e) / (1 + c_e) L_e^2 / (A1 + A2)
-        ~ (D / 2) sum_e theta_e^2 L_e^2 / (A1 + A2)   (small angles),
+    E_b = D sum_e (1 - n1 . n2) L_e^2 / (A1 + A2)   ~  (D / 2) sum_e theta_e^2 L_e^2 / (A1 + A2),
 
 which tends to the plate energy (D / 2) \\int kappa^2 dA of a cylinder (within a few per
-cent on refined structured and Delaunay meshes; tested).  The hinge measures its
-curvature by tan(theta / 2), which grows without bound as the two triangles fold onto
-each other: a fold costs ever more energy, as it does in a real sheet, whose crease
-cannot be sharper than its thickness.  The simpler form D (1 - c_e) = 2 D sin^2(theta /
-2), the same for small angles, stiffens no further past 90 degrees and exerts no force
-at 180 degrees: under load, creases then sharpen to single edges folded past 150
-degrees, where closures stall (measured in docs/mechanics.md, "Bending").  The flat
+cent on refined structured and Delaunay meshes; tested).  The flat
 template is the stress-free state, so the rest angle is zero.  The effective small-strain
 moduli per model: StVK (E, nu); neo-Hookean and Gent (3 mu, 1/2); mass-spring (E1, 1/3).
 """
@@ -101,20 +92,14 @@ def _unit(v):
     return jnp.where(ok, v / jnp.sqrt(jnp.where(ok, n2, 1.0)), 0.0)
 
 
-#: 1 + n1 . n2 is held above this in `bending_energy`'s denominator, so that a hinge
-#: folded flat onto itself (theta = 180 degrees) has a large but finite energy.
-FOLD_FLOOR = 1e-6
-
-
 def bending_energy(x, hinge, weights, D, triangles):
-    """E_b (N mm) = D sum_e w_e 2 (1 - c_e) / (1 + c_e), c_e = n1 . n2 (the module
-    docstring), for positions x (N, 3); the unit normals are computed once per triangle
-    of ``triangles`` (M, 3) and read per hinge (columns 4, 5 of `hinges`)."""
+    """E_b (N mm) = D sum_e w_e (1 - n1 . n2) for positions x (N, 3); the unit normals are
+    computed once per triangle of ``triangles`` (M, 3) and read per hinge (columns 4, 5 of
+    `hinges`)."""
     xt = x[triangles]
     n = _unit(jnp.cross(xt[:, 1] - xt[:, 0], xt[:, 2] - xt[:, 0]))
     n1, n2 = n[hinge[:, 4]], n[hinge[:, 5]]
-    c = jnp.sum(n1 * n2, -1)
-    return D * jnp.sum(weights * 2.0 * (1.0 - c) / jnp.maximum(1.0 + c, FOLD_FLOOR))
+    return D * jnp.sum(weights * (1.0 - jnp.sum(n1 * n2, -1)))
 
 
 @jax.tree_util.register_dataclass
