@@ -56,8 +56,12 @@ def test_segment_writes_surface_mask_figure_report_and_landmarks(patient):
     lm = rep["landmarks"]
     assert max(lm["commissure_wall_distance_mm"]) < 0.5
     np.testing.assert_allclose(lm["path_length_mm"], SUTURED, rtol=2e-3)
-    kinds = [m.kind for m in read_markups(out / "landmarks.mrk.json")]
-    assert kinds == ["Fiducial", "Curve", "Curve", "Curve"]
+    marks = read_markups(out / "landmarks.mrk.json")
+    assert [m.kind for m in marks] == ["Fiducial", "Curve", "Curve", "Curve"]
+    # the nadirs written are the projected ones, nadir i on suture path i
+    np.testing.assert_allclose(marks[0].points[3:], lm["nadirs"], atol=1e-9)
+    for nadir, curve in zip(marks[0].points[3:], marks[1:]):
+        assert np.linalg.norm(curve.points - nadir, axis=1).min() < 1.0
 
 
 def test_segment_refuses_bad_input_before_any_work(tmp_path, capsys):
@@ -68,6 +72,9 @@ def test_segment_refuses_bad_input_before_any_work(tmp_path, capsys):
     assert main(["segment", str(tmp_path / "none.nii.gz"), "--out", str(tmp_path / "o"),
                  "--landmarks", str(bad)]) == 2
     assert "three commissures" in capsys.readouterr().err
+    assert main(["segment", str(tmp_path / "none.nii.gz"), "--out", str(tmp_path / "o"),
+                 "--alpha", "200"]) == 2
+    assert "--alpha = 200 must be in (0, 180]" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
 
 

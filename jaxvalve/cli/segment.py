@@ -100,19 +100,14 @@ def run(args) -> int:
     root = None
     if lm is not None:
         from ..geometry.landmarks import landmarks_to_markups, root_from_landmarks
-        from ..geometry.surface_query import SurfaceIndex
         from ..io.markups import write_markups
         say("projecting the landmarks onto the wall"
             + ("" if lm.curves is not None else
                f"; fitting the suture paths to the sutured edge ({sutured:.2f} mm)"))
         t = time.perf_counter()
         root, lrep = root_from_landmarks((P, T), lm, sutured_length=sutured, name="patient")
-        nad = None
-        if lm.nadirs is not None:
-            nad = SurfaceIndex(P, T).closest(lm.nadirs)[1]
-            nad = nad[_nadir_order(root, nad)]
         written.append(write_markups(out / "landmarks.mrk.json",
-                                     landmarks_to_markups(root, nad)))
+                                     landmarks_to_markups(root, lrep.get("nadirs"))))
         times["landmarks_s"] = time.perf_counter() - t
         report["landmarks"] = {"file": "landmarks.mrk.json", "source": str(args.landmarks),
                                "sutured_length_mm": sutured, **lrep}
@@ -135,22 +130,18 @@ def run(args) -> int:
     return 0
 
 
-def _nadir_order(root, nadirs):
-    """The nadirs in the root's leaflet order (nadir i between commissures i and i+1)."""
-    import numpy as np
-    order = []
-    for p in root.paths:
-        order.append(int(np.argmin(np.linalg.norm(nadirs[:, None] - p[None], axis=-1).min(1))))
-    return order
-
-
 def _sutured_length(args):
+    from ..errors import ParameterError
     from ..geometry.template import sutured_length
     from ..scene import Scene
     d = Scene()
     r = d.r if args.r is None else args.r
     a = d.a if args.a is None else args.a
     alpha = d.alpha if args.alpha is None else args.alpha
+    for name, v, ok, rng in (("r", r, r > 0, "> 0 mm"), ("a", a, a > 0, "> 0 mm"),
+                             ("alpha", alpha, 0 < alpha <= 180, "in (0, 180] degrees")):
+        if not ok:
+            raise ParameterError(f"--{name} = {v:g} must be {rng}")
     return float(sutured_length(r, a, alpha))
 
 

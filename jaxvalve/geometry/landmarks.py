@@ -233,7 +233,8 @@ def root_from_landmarks(wall, landmarks: ValveLandmarks, *, sutured_length=None,
     mm.  Suture curves, where given, are used (their segments split to 0.5 mm, every
     point projected onto the wall); else the paths are fitted from the nadirs to ``sutured_length`` (mm).
     Returns (root, report): the report holds each landmark's distance to the wall, the
-    axis, and per path its length and (when fitted) its shape exponent."""
+    axis, and per path its length and (when fitted) its shape exponent and its nadir on
+    the wall (``nadirs``, in the root's leaflet order)."""
     src = landmarks.source
     index = SurfaceIndex(*wall)
     d_com, com, _ = index.closest(landmarks.commissures)
@@ -283,7 +284,7 @@ def root_from_landmarks(wall, landmarks: ValveLandmarks, *, sutured_length=None,
                                  "nadirs: the paths are fitted to the template's sutured "
                                  "edge, so sutured_length (mm) is needed")
         phi_n, zeta_n, _ = frame.coords(nad)
-        report["nadir_wall_distance_mm"] = []
+        report["nadir_wall_distance_mm"], report["nadirs"] = [], []
         zr = (float(min(zeta_c.min(), zeta_n.min())), float(zeta_n.max()))
         chart = _wall_chart(frame, index.points, zr, float(np.mean(rho_c)))
         for i in range(3):
@@ -305,6 +306,7 @@ def root_from_landmarks(wall, landmarks: ValveLandmarks, *, sutured_length=None,
             paths.append(x)
             exps.append(p)
             report["nadir_wall_distance_mm"].append(float(moved["nadirs"][j]))
+            report["nadirs"].append(nad[j].tolist())
         report["path_shape_exponent"] = exps
     lengths = [_length(x) for x in paths]
     report["path_length_mm"] = lengths
