@@ -3,11 +3,11 @@ volume files (NIfTI, DICOM).  Small phantoms (0.8 mm voxels) keep each test to s
 import numpy as np
 import pytest
 
-from jaxvalve.errors import ParameterError
+from jaxvalve.errors import MeshError, ParameterError
 from jaxvalve.geometry.surface_query import distance_to_surface
 from jaxvalve.imaging.phantom import RootPhantom, phantom_volume, true_wall
 from jaxvalve.imaging.segment import SegmentParams, find_seed, segment
-from jaxvalve.imaging.surface import mesh_quality, taubin, wall_surface
+from jaxvalve.imaging.surface import _edges, mesh_quality, taubin, wall_surface
 from jaxvalve.imaging.volume import Volume
 
 PH = RootPhantom(spacing=(0.8, 0.8, 0.8), supersample=2, noise_hu=20.0)
@@ -122,9 +122,15 @@ def test_wall_surface_lies_on_the_true_wall(scan, seg):
     q = mesh_quality(P, T)
     assert q["non_manifold_edges"] == 0 and q["boundary_edges"] > 0     # an open tube
     assert 0.5 < q["edge_mm"]["mean"] < 1.0
-    # a coarser surface for a target edge length
+    # remeshed to a target edge length: even triangles, still on the true wall
     P2, T2 = wall_surface(scan, seg, edge_mm=1.6)
-    assert 1.0 < mesh_quality(P2, T2)["edge_mm"]["mean"] < 2.0 and len(T2) < len(T) / 2
+    q2 = mesh_quality(P2, T2)
+    assert 1.4 < q2["edge_mm"]["mean"] < 1.8 and len(T2) < len(T) / 2
+    assert q["min_angle_deg"]["min"] < 5.0 < q2["min_angle_deg"]["min"]   # slivers gone
+    assert q2["min_angle_deg"]["p5"] > 35.0 and q2["non_manifold_edges"] == 0
+    away = (P2[:, 2] > lo[2] + 1.5) & (P2[:, 2] < hi[2] - 1.5)
+    d2 = distance_to_surface(P2[away], *truth)
+    assert d2.mean() < 0.3 and np.percentile(d2, 95) < 1.0
     with pytest.raises(ParameterError, match="edge_mm"):
         wall_surface(scan, seg, edge_mm=0.1)
 
@@ -136,6 +142,64 @@ def _sphere(r=10.0, step=0.5):
     pts, tris, _, _ = measure.marching_cubes(np.linalg.norm(X, axis=-1), r,
                                              spacing=(step,) * 3)
     return pts + ax[0], tris
+
+
+def _tube(r=8.0, step=0.5, height=12.0):
+    """An open tube by marching cubes (slivers and all), outward normals."""
+    from skimage import measure
+    ax = np.arange(-r - 2, r + 2 + step / 2, step)
+    az = np.arange(0.0, height + step / 2, step)
+    X = np.stack(np.meshgrid(ax, ax, az, indexing="ij"), -1)
+    pts, tris, _, _ = measure.marching_cubes(np.hypot(X[..., 0], X[..., 1]), r,
+                                             spacing=(step,) * 3)
+    return pts + np.array([ax[0], ax[0], 0.0]), tris.astype(np.int64)
+
+
+def _topology(T):
+    """(Euler characteristic, boundary loops) of a triangle mesh."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    e, count = _edges(T)
+    b = e[count == 1]
+    n = T.max() + 1
+    _, lab = connected_components(coo_matrix((np.ones(len(b)), (b[:, 0], b[:, 1])),
+                                             shape=(n, n)), directed=False)
+    return len(np.unique(T)) - len(e) + len(T), len(np.unique(lab[b.ravel()]))
+
+
+def _outward(P, T):
+    n = np.cross(P[T[:, 1]] - P[T[:, 0]], P[T[:, 2]] - P[T[:, 0]])
+    c = P[T].mean(axis=1)
+    return np.mean(np.sum(n[:, :2] * c[:, :2], axis=1) > 0)
+
+
+def test_remesh_makes_even_triangles_on_the_surface_and_keeps_its_topology():
+    from jaxvalve.imaging.remesh import remesh
+    P, T = _tube()
+    q0 = mesh_quality(P, T)
+    assert q0["min_angle_deg"]["min"] < 5.0                       # marching cubes' slivers
+    sign = 1.0 if _outward(P, T) > 0.5 else -1.0
+    for L in (0.8, 1.5):
+        P2, T2 = remesh(P, T, L)
+        q = mesh_quality(P2, T2)
+        assert abs(q["edge_mm"]["mean"] - L) < 0.15 * L
+        assert q["min_angle_deg"]["min"] > 25.0 and q["min_angle_deg"]["p5"] > 35.0
+        # every vertex on the input surface (exact projection), so on the cylinder
+        assert distance_to_surface(P2, P, T).max() < 1e-9
+        assert np.abs(np.hypot(P2[:, 0], P2[:, 1]) - 8.0).max() < 0.02
+        # the same topology (an open tube: chi 0, two loops) and orientation
+        assert _topology(T2) == _topology(T) == (0, 2)
+        assert q["non_manifold_edges"] == 0
+        assert (_outward(P2, T2) if sign > 0 else 1 - _outward(P2, T2)) == 1.0
+        # the area kept within 1 %
+        area = lambda P, T: 0.5 * np.linalg.norm(np.cross(P[T[:, 1]] - P[T[:, 0]],
+                                                          P[T[:, 2]] - P[T[:, 0]]), axis=1).sum()
+        assert abs(area(P2, T2) / area(P, T) - 1) < 0.01
+    with pytest.raises(ParameterError, match="edge_mm"):
+        remesh(P, T, 0.0)
+    bad = np.vstack([T, [[T[0, 0], T[0, 1], len(P) - 1]]])       # a third face on an edge
+    with pytest.raises(MeshError, match="manifold"):
+        remesh(P, bad, 1.0)
 
 
 def test_taubin_smooths_without_shrinking_where_a_laplacian_shrinks():

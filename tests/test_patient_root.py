@@ -64,6 +64,20 @@ def test_segment_writes_surface_mask_figure_report_and_landmarks(patient):
         assert np.linalg.norm(curve.points - nadir, axis=1).min() < 1.0
 
 
+def test_segment_remeshes_the_wall_to_a_target_edge(patient, tmp_path):
+    import meshio
+    out = tmp_path / "edge"
+    assert main(["segment", str(patient / "scan" / "ct.nii.gz"), "--out", str(out),
+                 "--edge", "1.5", "--format", "vtu", "--no-figure"]) == 0
+    s = json.loads((out / "segmentation.json").read_text())["surface"]
+    assert s["file"] == "root.vtu" and abs(s["edge_mm"]["mean"] - 1.5) < 0.15
+    fine = json.loads((patient / "out" / "segmentation.json").read_text())["surface"]
+    assert fine["min_angle_deg"]["min"] < 2.0 < 8.0 < s["min_angle_deg"]["min"]
+    assert s["non_manifold_edges"] == 0 and s["triangles"] < fine["triangles"] / 2
+    m = meshio.read(out / "root.vtu")
+    assert len(m.cells_dict["triangle"]) == s["triangles"]
+
+
 def test_segment_refuses_bad_input_before_any_work(tmp_path, capsys):
     assert main(["segment", str(tmp_path / "none.nii.gz"), "--out", str(tmp_path / "o")]) == 2
     assert "none.nii.gz" in capsys.readouterr().err

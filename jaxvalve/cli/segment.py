@@ -29,8 +29,9 @@ def add_parser(sub):
                    help="Slicer markups: commissures C1-C3 and nadirs N1-N3 (a point list) "
                         "or three suture path curves")
     p.add_argument("--edge", type=float, metavar="MM",
-                   help="target edge length of the wall mesh, mm (default: the smallest "
-                        "voxel size)")
+                   help="target edge length of the wall mesh, mm: the marching-cubes "
+                        "surface is remeshed to even triangles of this size (default: not "
+                        "remeshed, edges of about a voxel)")
     p.add_argument("--smooth", type=int, default=10, metavar="N",
                    help="Taubin smoothing passes (default 10; 0: none)")
     p.add_argument("--separation", type=float, default=2.0, metavar="MM",
@@ -87,7 +88,8 @@ def run(args) -> int:
     seg = segment(vol, seed=args.seed, params=SegmentParams(separation_mm=args.separation),
                   say=say)
     times["segment_s"] = time.perf_counter() - t
-    say("meshing the wall (marching cubes, Taubin smoothing)")
+    say("meshing the wall (marching cubes, Taubin smoothing"
+        + (f", remeshing to {args.edge:g} mm edges)" if args.edge else ")"))
     t = time.perf_counter()
     P, T = wall_surface(vol, seg, edge_mm=args.edge, smooth_iterations=args.smooth)
     quality = mesh_quality(P, T)

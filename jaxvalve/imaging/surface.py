@@ -2,8 +2,9 @@
 segmentation's half-maximum level and within the mask (so the surface passes between
 voxels where the blurred intensity crosses that level, not along voxel faces), in
 patient coordinates; the largest connected piece; Taubin smoothing, which removes noise
-without shrinking the surface (a Laplacian step followed by a negative one); and a
-coarser grid for a target edge length.  `mesh_quality` measures the result;
+without shrinking the surface (a Laplacian step followed by a negative one); and, for a
+target edge length, isotropic remeshing onto that surface (`jaxvalve.imaging.remesh`:
+even, nearly equilateral triangles in place of marching cubes' slivers).  `mesh_quality` measures the result;
 `jaxvalve.geometry.surface_query.distance_to_surface` compares it with another surface."""
 from __future__ import annotations
 
@@ -20,14 +21,12 @@ def wall_surface(volume: Volume, seg: Segmentation, *, edge_mm: float | None = N
                  smooth_iterations: int = 10):
     """The lumen's wall: (points (P, 3) LPS mm, triangles (T, 3) int), the level set of
     the segmentation's smoothed image (``seg.image``) at its threshold.  edge_mm: the
-    target edge length (default the smallest voxel size): marching cubes steps over
-    round(edge_mm / smallest spacing) voxels.  smooth_iterations: Taubin passes (0: none)."""
+    target edge length; the marching-cubes surface (edges of about a voxel) is remeshed
+    to it (default None: not remeshed).  smooth_iterations: Taubin passes (0: none)."""
     from scipy import ndimage
     from skimage import measure
     sp = volume.spacing
-    if edge_mm is None:
-        edge_mm = float(sp.min())
-    if not (np.isfinite(edge_mm) and sp.min() <= edge_mm <= 20 * sp.max()):
+    if edge_mm is not None and not (np.isfinite(edge_mm) and sp.min() <= edge_mm <= 20 * sp.max()):
         raise ParameterError(f"edge_mm must lie in [{sp.min():g}, {20 * sp.max():g}] mm (the "
                              f"smallest voxel to 20 voxels); got {edge_mm!r}")
     if not (isinstance(smooth_iterations, int) and 0 <= smooth_iterations <= 200):
@@ -42,13 +41,14 @@ def wall_surface(volume: Volume, seg: Segmentation, *, edge_mm: float | None = N
     region = ndimage.binary_dilation(seg.mask, iterations=1)
     low = min(float(data.min()), seg.threshold - 1.0)
     data = np.where(region, data, low)
-    step = max(1, int(round(edge_mm / sp.min())))
-    ijk, tris, _, _ = measure.marching_cubes(data, seg.threshold, step_size=step,
-                                             allow_degenerate=False)
+    ijk, tris, _, _ = measure.marching_cubes(data, seg.threshold, allow_degenerate=False)
     pts = volume.to_world(ijk)
     pts, tris = _largest_piece(pts, tris.astype(np.int64))
     if smooth_iterations:
         pts = taubin(pts, tris, iterations=smooth_iterations)
+    if edge_mm is not None:
+        from .remesh import remesh
+        pts, tris = remesh(pts, tris, float(edge_mm))
     return pts, tris
 
 
