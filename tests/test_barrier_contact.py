@@ -177,10 +177,12 @@ def _two_sheets(n=6, gap=0.3, shift=(0.13, 0.07)):
 
 
 def test_broad_phase_equals_brute_force():
+    # the sheets' own nodes lie 0.2 mm apart, inside the cutoff: the pairs between the
+    # sheets only here (self-contact: the next test)
     x, tri, body = _two_sheets(gap=0.15)
     x = x + 0.05 * RNG.normal(size=x.shape)
     fixed = np.zeros(len(x), bool)
-    topo = barrier_topology(tri, body, x[:, :2], fixed, x)
+    topo = barrier_topology(tri, body, x[:, :2], fixed, x, self_contact=False)
     cut = 0.3
     pairs = build_pairs(topo, x, cut)
     brute_pt = set()
@@ -199,6 +201,80 @@ def test_broad_phase_equals_brute_force():
                     brute_ee.add(tuple(E[a]) + tuple(E[b]))
     assert set(map(tuple, pairs.ee.tolist())) == brute_ee
     assert len(brute_pt) > 20 and len(brute_ee) > 20
+
+
+def _folded_sheet(n=9, angle_deg=170.0):
+    """One sheet (body 0) of n x n nodes, 2 mm wide (its flat template ref (N, 2)),
+    folded about the line x = 1 mm by angle_deg (0: flat), the far half above the near
+    one: (x, triangles, body, ref)."""
+    x, tri, body = _two_sheets(n=n)
+    m = n * n
+    x, tri, body = 2.0 * x[:m], tri[: len(tri) // 2], body[:m]
+    ref = x[:, :2].copy()
+    t = np.radians(180.0 - angle_deg)
+    far = x[:, 0] > 1.0 + 1e-9
+    u = x[far, 0] - 1.0
+    x[far, 0], x[far, 2] = 1.0 - u * np.cos(t), u * np.sin(t)
+    return x, tri, body, ref
+
+
+def test_self_contact_lists_the_pairs_of_one_sheet_that_share_no_node():
+    """A sheet folded to 170 degrees: its two halves face each other.  The pairs listed
+    are exactly those of a brute-force search over node-triangle and edge-edge pairs
+    that share no node and lie at least self_gap apart in the flat template; without
+    self-contact there are none; in the flat sheet (a right-angled grid of 0.25 mm,
+    whose nodes lie 0.18 mm from triangles they do not touch) none either."""
+    x, tri, body, ref = _folded_sheet()
+    r3 = np.pad(ref, ((0, 0), (0, 1)))
+    fixed = np.zeros(len(x), bool)
+    cut, gap = 0.2, 0.5
+    topo = barrier_topology(tri, body, ref, fixed, x, self_gap=gap)
+    pairs = build_pairs(topo, x, cut)
+
+    def pt2(y, p, t):
+        return D.point_triangle_distance2_np(y[p][None], *(y[k][None] for k in t))[0]
+    brute_pt = {(p,) + tuple(t) for p in range(len(x)) for t in tri.tolist()
+                if p not in t and pt2(x, p, t) < cut ** 2 and pt2(r3, p, t) >= gap ** 2}
+    assert set(map(tuple, pairs.pt.tolist())) == brute_pt and len(brute_pt) > 5
+    E = topo.edges
+
+    def ee2(y, a, b):
+        return D.segment_distance2_np(*y[E[a]], *y[E[b]])
+    brute_ee = {tuple(E[a]) + tuple(E[b]) for a in range(len(E)) for b in range(a + 1, len(E))
+                if not set(E[a]) & set(E[b]) and ee2(x, a, b) < cut ** 2
+                and ee2(r3, a, b) >= gap ** 2}
+    assert set(map(tuple, pairs.ee.tolist())) == brute_ee and len(brute_ee) > 5
+    off = build_pairs(barrier_topology(tri, body, ref, fixed, x, self_contact=False), x, cut)
+    assert len(off.pt) == len(off.ee) == 0
+    flat = r3
+    assert pt2(flat, 1, tri[tri[:, 0] == 0][0]) < cut ** 2     # the grid's near neighbours
+    p = build_pairs(topo, flat, cut)
+    assert len(p.pt) == len(p.ee) == 0
+    with pytest.raises(ParameterError, match="self_gap"):
+        barrier_topology(tri, body, ref, fixed, x, self_gap=0.0)
+
+
+def test_self_contact_ccd_keeps_a_folding_sheet_from_passing_through_itself():
+    """The outer part of a sheet's far half (folded to 170 degrees) is pushed down through
+    the near half:
+    with self-contact the CCD step stops short, and ipctk (an independent
+    implementation, which checks a mesh against itself) finds no intersection at the
+    step, where the whole move intersects."""
+    x, tri, body, ref = _folded_sheet()
+    dx = np.zeros_like(x)
+    dx[ref[:, 0] > 1.4, 2] = -0.6       # the outer part of the far half, down through
+    topo = barrier_topology(tri, body, ref, np.zeros(len(x), bool), x)
+    pairs = build_pairs(topo, x, 2.0 * 0.6 * 1.001 + 0.2)
+    t = ccd.max_step(x, dx, pairs)
+    assert 0.0 < t < 1.0
+    mesh = ipctk.CollisionMesh(x, ipctk.edges(tri.astype(np.int32)), tri.astype(np.int32))
+    assert ipctk.has_intersections(mesh, x + dx)
+    assert not ipctk.has_intersections(mesh, x + t * dx)
+    toi = ipctk.compute_collision_free_stepsize(mesh, x, x + dx)
+    assert t <= toi
+    off = build_pairs(barrier_topology(tri, body, ref, np.zeros(len(x), bool), x,
+                                       self_contact=False), x, 1.5)
+    assert ccd.max_step(x, dx, off) == 1.0       # nothing between the halves to stop it
 
 
 def test_pins_exclude_sewn_points_and_fixed_pairs():
@@ -225,7 +301,8 @@ def test_additive_ccd_never_lets_triangles_cross(seed):
     dx = np.zeros_like(x)
     dx[body == 1] = [0.1, -0.05, -0.6]
     dx += 0.05 * rng.normal(size=x.shape)
-    topo = barrier_topology(tri, body, x[:, :2], np.zeros(len(x), bool), x)
+    topo = barrier_topology(tri, body, x[:, :2], np.zeros(len(x), bool), x,
+                            self_contact=False)
     pairs = build_pairs(topo, x, 2.0 * np.abs(dx).max() * 2 + 0.3)
     t = ccd.max_step(x, dx, pairs)
     assert 0.0 < t < 1.0

@@ -20,9 +20,7 @@ from stress_suite import ipctk_intersects
 from test_notebooks import run_notebook
 
 H = 2.0                 # leaflet mesh size, mm
-#: closing load of these tests, mmHg: the effective-height load (the valve does not yet
-#: close at 80 mmHg in this root: docs/known-limits.md, "Patient roots")
-P = 3.0
+P = 80.0                #: closing load of these tests, mmHg
 SUTURED = Scene().template().sutured_length
 NOTEBOOK = Path(__file__).resolve().parent.parent / "notebooks" / "03_patient_root.ipynb"
 

@@ -1,10 +1,19 @@
-"""Broad phase of the barrier contact: point-triangle and edge-edge pairs between leaflets.
+"""Broad phase of the barrier contact: point-triangle and edge-edge pairs of the leaflets.
 
 Host side (NumPy and scipy's k-d tree), run once per Newton iteration by the barrier
 closure (`jaxvalve.solvers.barrier_newton`), whose steps are taken on the host anyway.
 `barrier_topology` is built once per valve; `build_pairs(topo, x, cutoff)` lists every
-node-triangle and edge-edge pair of different leaflets closer than ``cutoff`` (mm) in the
-state x (N, 3), with its squared distance: exact, not a bounding-volume superset.
+node-triangle and edge-edge pair closer than ``cutoff`` (mm) in the state x (N, 3), with
+its squared distance: exact, not a bounding-volume superset.  The pairs are those of
+different leaflets and, with ``self_contact`` (the default), those of one leaflet that
+share no node (IPC's self-contact): a leaflet that creases sharply (in an asymmetric
+root the free edge's centre can pinch flat between its neighbours) then cannot fold
+through itself, for the same reason two leaflets cannot cross.  Two elements of one
+leaflet that lie closer than ``self_gap`` (0.5 mm) in the flat template are neighbours
+within the sheet, not contact, and are never paired: without that, a fine mesh (a
+right-angled grid of 0.25 mm puts a node 0.18 mm from a triangle it does not touch)
+would feel the barrier in its flat, stress-free state.  The barrier closure requires
+d_hat <= self_gap, so that every pair it lists is farther than d_hat in the template.
 
 Excluded pairs: those whose nodes are all sutured (fixed; they exert no force on a free
 node), and those whose two sides share a *pin*, a sutured point where two leaflets are sewn
@@ -37,7 +46,9 @@ class BarrierTopology:
     (a_p / 2) and edge_w (E,) mm^2 (A_e / 4) the collision weights, edge_len2 (E,) mm^2
     the edges' squared rest lengths (the mollifier threshold of a pair is 1e-3 la^2 lb^2),
     all three from `jaxvalve.contact.barrier.collision_weights`; pin (N,) int, the
-    commissure point a sutured node is sewn to, or -1; fixed (N,) bool."""
+    commissure point a sutured node is sewn to, or -1; fixed (N,) bool; self_contact:
+    whether pairs of one leaflet that share no node are listed too, less those closer
+    than self_gap (mm) in the template ref3 (N, 3) (module docstring)."""
 
     triangles: np.ndarray
     edges: np.ndarray
@@ -50,6 +61,9 @@ class BarrierTopology:
     edge_len2: np.ndarray
     pin: np.ndarray
     fixed: np.ndarray
+    self_contact: bool = True
+    self_gap: float = 0.5
+    ref3: np.ndarray | None = None
 
     @property
     def n_nodes(self):
@@ -90,11 +104,15 @@ class BarrierPairs:
                             self.ee_eps[b], d2_ee[b], float(cutoff), self.ee_edges[b])
 
 
-def barrier_topology(triangles, body, ref, fixed, x0, pin_tol=1e-9) -> BarrierTopology:
+def barrier_topology(triangles, body, ref, fixed, x0, pin_tol=1e-9,
+                     self_contact: bool = True, self_gap: float = 0.5) -> BarrierTopology:
     """`BarrierTopology` of a membrane of several bodies: triangles (M, 3), body (N,),
     reference coordinates ref (N, 2|3) mm (the weights and rest lengths), fixed (N,) bool,
     and the initial state x0 (N, 3) mm, where sutured nodes of different bodies that
-    coincide (within pin_tol mm) are pinned together."""
+    coincide (within pin_tol mm) are pinned together.  self_contact: list the pairs of
+    one body that share no node too, less those closer than self_gap (mm) in ref."""
+    if not (np.isfinite(self_gap) and self_gap > 0):
+        raise ParameterError(f"self_gap must be a positive length (mm); got {self_gap!r}")
     tri = np.asarray(triangles, np.int64)
     body = np.asarray(body, np.int64)
     ref = np.asarray(ref, float)
@@ -117,7 +135,9 @@ def barrier_topology(triangles, body, ref, fixed, x0, pin_tol=1e-9) -> BarrierTo
     return BarrierTopology(triangles=tri, edges=edges, tri_edge=tri_edge, body=body,
                            tri_body=body[tri[:, 0]], edge_body=body[edges[:, 0]],
                            node_w=node_w, edge_w=edge_w, edge_len2=len2, pin=pin,
-                           fixed=fixed)
+                           fixed=fixed, self_contact=bool(self_contact),
+                           self_gap=float(self_gap),
+                           ref3=np.pad(ref, ((0, 0), (0, 3 - ref.shape[1]))))
 
 
 def _shares_pin(pin, a, b):
@@ -150,8 +170,9 @@ def pair_distances2(x, pt, ee):
 
 
 def build_pairs(topo: BarrierTopology, x, cutoff: float) -> BarrierPairs:
-    """Every point-triangle and edge-edge pair of different bodies closer than cutoff (mm)
-    in the state x (N, 3), less the excluded ones (module docstring)."""
+    """Every point-triangle and edge-edge pair closer than cutoff (mm) in the state x
+    (N, 3), of different bodies or (``topo.self_contact``) of one body and sharing no node,
+    less the excluded ones (module docstring)."""
     x = np.asarray(x, float)
     if not np.all(np.isfinite(x)):
         raise ParameterError("x holds non-finite positions; contact needs finite coordinates")
@@ -165,8 +186,15 @@ def build_pairs(topo: BarrierTopology, x, cutoff: float) -> BarrierPairs:
     # point-triangle: nodes against triangle centroids, then the exact distance
     cand = _ball_pairs(cen, x, cutoff + rad)
     node, t = cand[:, 0], cand[:, 1]
-    keep = topo.body[node] != topo.tri_body[t]
-    node, t = node[keep], t[keep]
+    other = topo.body[node] != topo.tri_body[t]
+    if topo.self_contact:            # within a body: no shared node, apart in the template
+        r = topo.ref3
+        own = ~other & np.all(tri[t] != node[:, None], axis=1)
+        own[own] = point_triangle_distance2_np(
+            r[node[own]], r[tri[t[own], 0]], r[tri[t[own], 1]],
+            r[tri[t[own], 2]]) >= topo.self_gap ** 2
+        other |= own
+    node, t = node[other], t[other]
     rows = np.column_stack([node, tri[t]])
     keep = ~(topo.fixed[node] & np.all(topo.fixed[tri[t]], axis=1))
     keep &= ~_shares_pin(topo.pin, rows[:, :1], rows[:, 1:])
@@ -184,6 +212,15 @@ def build_pairs(topo: BarrierTopology, x, cutoff: float) -> BarrierPairs:
         later = np.flatnonzero(topo.edge_body > b)
         c = _ball_pairs(mid[mine], mid[later], cutoff + 2 * half)
         out.append(np.column_stack([mine[c[:, 1]], later[c[:, 0]]]))
+    if topo.self_contact:            # within each body: no shared node, apart in the template
+        c = cKDTree(mid).query_pairs(cutoff + 2 * half, output_type="ndarray").astype(np.int64)
+        c = c[topo.edge_body[c[:, 0]] == topo.edge_body[c[:, 1]]]
+        c = c[~np.any(edges[c[:, 0]][:, :, None] == edges[c[:, 1]][:, None, :], axis=(1, 2))]
+        r = topo.ref3
+        c = c[segment_distance2_np(r[edges[c[:, 0], 0]], r[edges[c[:, 0], 1]],
+                                   r[edges[c[:, 1], 0]], r[edges[c[:, 1], 1]])
+              >= topo.self_gap ** 2]
+        out.append(c)
     ea_eb = np.concatenate(out) if out else np.zeros((0, 2), np.int64)
     rows = np.column_stack([edges[ea_eb[:, 0]], edges[ea_eb[:, 1]]])
     keep = ~np.all(topo.fixed[rows], axis=1)

@@ -21,10 +21,12 @@ contact (`jaxvalve.contact.ccd`), so the leaflets can never cross.  Each step:
    backtracking on the merit  Phi(alpha) = E(x + alpha d) - E(x) - W(alpha),  E the
    conservative energy (strain, bending, barrier) and W the work of the follower pressure
    along the step, exact by Simpson's rule (the load is quadratic in the positions).  A
-   trial state must also be admissible: finite, inside the material's stretch limit, and
-   without an edge folded past 150 degrees (the bound of `jaxvalve.valve.checks`: without it,
-   long steps on coarse or soft leaflets jumped into creased states, a discretisation
-   artefact the state check rejects).
+   trial state must also be admissible: finite and inside the material's stretch limit;
+   without self-contact (`BarrierTopology.self_contact` False) also without an edge
+   folded past 150 degrees (the bound of `jaxvalve.valve.checks`), since nothing else
+   would then keep a leaflet from folding through itself.  With self-contact (the
+   default) a crease is held open by the barrier between the leaflet's own elements,
+   and its fold angle is free.
 4. Stop when ||F_free|| / ||F_pressure|| < rtol (with ``max_pushes`` > 0, at a stable
    state: `lowest_modes`; an unstable equilibrium is pushed off along its mode, at most
    ``max_pushes`` times, then `RESULTS.unstable`), or with `RESULTS.escaped` once a node has
@@ -279,11 +281,13 @@ class _Model:
         return np.asarray(_pressure(jnp.asarray(x), self.problem, self.params))
 
     def admissible(self, x):
-        return bool(_admissible(jnp.asarray(x), self.problem, self.params, self.ref))
+        fold = -2.0 if self.topo.self_contact else _FOLD_COS     # -2: no fold bound
+        return bool(_admissible(jnp.asarray(x), self.problem, self.params, self.ref,
+                                fold))
 
 
-#: cosine of the fold limit: a step may not turn two triangles that share an edge more
-#: than `jaxvalve.valve.checks.FOLD_DEG` (150 degrees) apart, the state check's bound
+#: cosine of the fold limit without self-contact: a step may not turn two triangles that
+#: share an edge more than `jaxvalve.valve.checks.FOLD_DEG` (150 degrees) apart
 _FOLD_COS = float(np.cos(np.radians(FOLD_DEG)))
 
 
@@ -293,15 +297,16 @@ def _pressure(x, problem, params):
 
 
 @jax.jit
-def _admissible(x, problem, params, ref):
-    """Finite, inside the material's stretch limit, and no edge folded past FOLD_DEG."""
+def _admissible(x, problem, params, ref, fold_cos):
+    """Finite, inside the material's stretch limit, and no edge folded so far that the
+    cosine between its triangles' normals is fold_cos or below."""
     ok = assembly.stretch_admissible(x, problem, params, ref) & jnp.all(jnp.isfinite(x))
     if problem.hinges is not None and problem.hinges.shape[0]:
         xt = x[problem.triangles]
         n = jnp.cross(xt[:, 1] - xt[:, 0], xt[:, 2] - xt[:, 0])
         n = n / jnp.linalg.norm(n, axis=-1, keepdims=True)
         c = jnp.sum(n[problem.hinges[:, 4]] * n[problem.hinges[:, 5]], axis=-1)
-        ok = ok & jnp.all(c > _FOLD_COS)
+        ok = ok & jnp.all(c > fold_cos)
     return ok
 
 
@@ -399,8 +404,9 @@ def _push(model, topo, x, v, E, fp, res, scale, dhat, solver):
 def _start_failure(model, x):
     """Why no step can start from x, or None: not finite (`RESULTS.nonfinite`), a
     triangle past the material's stretch limit or collapsed (`RESULTS.stretch_limit`),
-    or an edge folded past `FOLD_DEG` (`RESULTS.stagnation`: the line search accepts
-    only admissible states, and every short step from a folded state is folded too)."""
+    or, without self-contact, an edge folded past `FOLD_DEG` (`RESULTS.stagnation`: the
+    line search accepts only admissible states, and every short step from a folded state
+    is folded too)."""
     if model.admissible(x):
         return None
     xj = jnp.asarray(x)
@@ -436,6 +442,10 @@ def solve_barrier(problem, params, x0, solver: BarrierNewton, topo: BarrierTopol
         raise ParameterError("solve_barrier needs params.contact = BarrierContact()")
     law.validate()
     dhat = float(law.dhat)
+    if topo.self_contact and dhat > topo.self_gap:
+        raise ParameterError(f"the barrier's dhat = {dhat:g} mm must not exceed the "
+                             f"self-contact gap self_gap = {topo.self_gap:g} mm (pairs of "
+                             "one leaflet closer than that in the template are not listed)")
     model = _Model(problem, params, topo)
     x = np.array(x0, dtype=np.float64)
     pairs = build_pairs(topo, x, dhat)

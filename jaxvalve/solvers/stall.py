@@ -11,8 +11,9 @@ residual itself is a jump.  On the soft valves of the paper's Table 4 the one-si
 contact force jumps by 0.27-0.44 N where a free edge has folded round another leaflet's
 (`benchmarks/stall_probe.py`, docs/known-limits.md).
 
-The barrier law is solved by projected Newton, whose line search keeps every edge's fold
-below `checks.FOLD_DEG`.  Its solves stop short at that bound when a crease wants to fold
+The barrier law without self-contact (`BarrierTopology.self_contact` False) is solved by
+projected Newton with a line search that keeps every edge's fold below
+`checks.FOLD_DEG`.  Its solves stop short at that bound when a crease wants to fold
 further (`fold_bound_cause`): the hinge energy D w (1 - cos theta) resists a fold with a
 moment D w sin(theta), which falls past 90 degrees (soft StVK, E = 0.05 MPa, h = 2 mm:
 every stagnated barrier solve of the stress run ended with one edge at 150.00 degrees;

@@ -14,7 +14,9 @@ cosine between the unit normals of its two triangles:
   so orientation is judged against the neighbours: a consistently oriented mesh that
   folds over an edge shows as nearly opposite normals on that edge.  The closed valve's
   sharpest fold at h = 2 mm (the free edge bent over at the centre) stays below 100
-  degrees.
+  degrees in the symmetric benchmark root.  States of the barrier law with self-contact
+  are checked with fold_deg = 180 (no fold bound): there a sharp crease is held open by
+  contact, not turned over (`jaxvalve.valve.model.state_failure`).
 
 `inverted_triangles` returns the offending triangles; `CheckReport.ok` says whether all
 passed.  Lengths in mm.

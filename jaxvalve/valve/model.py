@@ -31,7 +31,7 @@ __all__ = ["Valve", "build_valve", "settle", "close", "valve_contact", "state_fa
 #: is not a valid closed valve.  Names and messages, apart from the solver's `RESULTS`.
 STATE_FAILURES = {
     "leaflets_cross": ("the force residual met the tolerance but leaflets cross one another "
-                       "(exact triangle-triangle test)"),
+                       "or themselves (exact triangle-triangle test)"),
     "inverted_triangles": ("the force residual met the tolerance but a triangle is folded "
                            "over its neighbour or collapsed "
                            "(jaxvalve.valve.checks.triangle_checks)"),
@@ -218,7 +218,9 @@ def close(valve: Valve, material, pressure_mmhg=80.0, *, solver=None, contact=No
         sol = equilibrium.solve(valve.problem, params, jnp.asarray(x0), solver,
                                 throw=throw and not check_state, nbrs=nbrs, skin=valve.skin,
                                 whole_lists=whole_lists)
-    sol = checked(valve, sol, ref=ref) if check_state else ValveSolution(
+    barrier = getattr(params.contact, "barrier", False)
+    sol = checked(valve, sol, ref=ref,
+                  self_contact=barrier and topo.self_contact) if check_state else ValveSolution(
         x=sol.x, result=sol.result, stats=sol.stats, nbrs=sol.nbrs)
     if throw and check_state and not sol.converged:
         raise ConvergenceError(f"valve closure at {pressure_mmhg:g} mmHg did not converge: "
@@ -226,31 +228,44 @@ def close(valve: Valve, material, pressure_mmhg=80.0, *, solver=None, contact=No
     return sol
 
 
-def checked(valve: Valve, sol: Solution, ref=None) -> ValveSolution:
+def checked(valve: Valve, sol: Solution, ref=None, self_contact: bool = False
+            ) -> ValveSolution:
     """``sol`` as a `ValveSolution` carrying the state check (`state_failure`) of a state
     the solver accepted.  ref: the leaflets' reference (N, 2|3) mm where it is not
-    ``valve.ref`` (a mapped template, `optimize.Evaluator`).  The one check that
-    `close`, `simulate`, `simulate_batch`, the stress suite and the optimiser apply."""
+    ``valve.ref`` (a mapped template, `optimize.Evaluator`); self_contact: the state
+    comes from a law with self-contact (`state_failure`).  The one check that `close`,
+    `simulate`, `simulate_batch`, the stress suite and the optimiser apply."""
     state = None
     if sol.converged:
         v = valve if ref is None else dataclasses.replace(valve, ref=np.asarray(ref))
-        state = state_failure(v, sol.x)
+        state = state_failure(v, sol.x, self_contact=self_contact)
     return ValveSolution(x=sol.x, result=sol.result, stats=sol.stats, nbrs=sol.nbrs,
                          state=state)
 
 
-def state_failure(valve: Valve, x):
+def state_failure(valve: Valve, x, *, self_contact: bool = False):
     """Why the state x (N, 3) mm, which a solver calls converged, is still not a valid
     closed valve, as a key of `STATE_FAILURES`: "leaflets_cross" (an exact triangle-triangle
     test finds leaflets crossing), "inverted_triangles" (a triangle collapsed or turned
-    over, `jaxvalve.valve.checks`), "nonfinite", or None when it passes."""
-    from .checks import triangle_checks
+    over, `jaxvalve.valve.checks`), "nonfinite", or None when it passes.
+
+    self_contact: x comes from a law that keeps each leaflet off itself (the barrier's
+    self-contact, CCD on every step).  A sharp crease (two triangles' normals more than
+    `checks.FOLD_DEG` apart) is then a fold held open, not a triangle turned over, and
+    is not a failure; instead the exact test looks for triangles of one leaflet that
+    share no node and intersect (`intersect.self_intersections`)."""
+    from .checks import FOLD_DEG, triangle_checks
+    from .intersect import self_intersections
     x = np.asarray(x, np.float64)
     if not np.all(np.isfinite(x)):
         return "nonfinite"
     if len(leaflet_crossings(valve, x)):
         return "leaflets_cross"
-    if not triangle_checks(valve.ref, valve.triangles, x).ok:
+    if self_contact and len(self_intersections(x, valve.triangles, valve.body)):
+        return "leaflets_cross"
+    rep = triangle_checks(valve.ref, valve.triangles, x,
+                          fold_deg=180.0 if self_contact else FOLD_DEG)
+    if not rep.ok:
         return "inverted_triangles"
     return None
 
