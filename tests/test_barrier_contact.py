@@ -10,7 +10,7 @@ ipctk = pytest.importorskip("ipctk")
 from jaxvalve.contact import ccd  # noqa: E402
 from jaxvalve.contact import ipc_distance as D  # noqa: E402
 from jaxvalve.contact.barrier import BarrierContact, barrier, ee_energies, pt_energies  # noqa: E402
-from jaxvalve.contact.ipc_pairs import barrier_topology, build_pairs  # noqa: E402
+from jaxvalve.contact.ipc_pairs import barrier_topology, build_pairs, pair_distances2  # noqa: E402
 from jaxvalve.errors import ParameterError  # noqa: E402
 
 RNG = np.random.default_rng(7)
@@ -275,6 +275,36 @@ def test_self_contact_ccd_keeps_a_folding_sheet_from_passing_through_itself():
     off = build_pairs(barrier_topology(tri, body, ref, np.zeros(len(x), bool), x,
                                        self_contact=False), x, 1.5)
     assert ccd.max_step(x, dx, off) == 1.0       # nothing between the halves to stop it
+
+
+def test_the_broad_phase_of_a_move_keeps_every_pair_that_can_come_within_dhat():
+    """The CCD broad phase with the move dx: a sheet folded to 160 degrees turns as a whole
+    (0.35 rad) while its far half closes on the near one.  Pairs of one sheet are listed
+    only where their nodes' relative move can bring them within d_hat, so the list is a
+    fraction of the bound 2 max |dx| alone; but every pair whose distance comes below
+    d_hat anywhere along the move (sampled densely) is in it."""
+    x, tri, body, ref = _folded_sheet(angle_deg=160.0)
+    c, s = np.cos(0.35), np.sin(0.35)
+    turn = (x - x.mean(axis=0)) @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]]).T
+    dx = turn + x.mean(axis=0) - x
+    dx[ref[:, 0] > 1.0, 2] -= 0.25 * (ref[ref[:, 0] > 1.0, 0] - 1.0)
+    dx += 0.005 * RNG.normal(size=x.shape)
+    topo = barrier_topology(tri, body, ref, np.zeros(len(x), bool), x)
+    dhat = 0.2
+    cut = dhat + 2.0 * 1.001 * np.linalg.norm(dx, axis=1).max() + 1e-9
+    full, pruned = build_pairs(topo, x, cut), build_pairs(topo, x, cut, dx=dx)
+    def rows(p):
+        return set(map(tuple, p.pt.tolist())), set(map(tuple, p.ee.tolist()))
+    (fp, fe), (pp, pe) = rows(full), rows(pruned)
+    assert pp <= fp and pe <= fe and len(pp) + len(pe) < (len(fp) + len(fe)) / 2
+    hit_pt, hit_ee = np.zeros(len(full.pt), bool), np.zeros(len(full.ee), bool)
+    for t in np.linspace(0.0, 1.0, 101):
+        d_pt, d_ee = pair_distances2(x + t * dx, full.pt, full.ee)
+        hit_pt |= d_pt < dhat ** 2
+        hit_ee |= d_ee < dhat ** 2
+    assert hit_pt.sum() > 0 and hit_ee.sum() > 0
+    assert set(map(tuple, full.pt[hit_pt].tolist())) <= pp
+    assert set(map(tuple, full.ee[hit_ee].tolist())) <= pe
 
 
 def test_pins_exclude_sewn_points_and_fixed_pairs():

@@ -169,10 +169,16 @@ def pair_distances2(x, pt, ee):
     return d_pt, d_ee
 
 
-def build_pairs(topo: BarrierTopology, x, cutoff: float) -> BarrierPairs:
+def build_pairs(topo: BarrierTopology, x, cutoff: float, dx=None) -> BarrierPairs:
     """Every point-triangle and edge-edge pair closer than cutoff (mm) in the state x
     (N, 3), of different bodies or (``topo.self_contact``) of one body and sharing no node,
-    less the excluded ones (module docstring)."""
+    less the excluded ones (module docstring).
+
+    dx (N, 3) mm: the move the list is for (the broad phase of CCD, cutoff = d_hat +
+    2 max |dx|).  A pair of one body then needs only to be closer than d_hat plus the
+    largest relative move of its nodes, max |dx_a - dx_b| (its distance cannot shrink by
+    more along the move): the neighbours within a sheet, which move nearly together,
+    drop out, where the bound 2 max |dx| would list them all."""
     x = np.asarray(x, float)
     if not np.all(np.isfinite(x)):
         raise ParameterError("x holds non-finite positions; contact needs finite coordinates")
@@ -183,51 +189,85 @@ def build_pairs(topo: BarrierTopology, x, cutoff: float) -> BarrierPairs:
     xt = x[tri]
     cen = xt.mean(axis=1)
     rad = np.sqrt(np.max(np.sum((xt - cen[:, None]) ** 2, axis=2)))
+    if dx is not None:
+        dx = np.asarray(dx, float)
+        reach = max(cutoff - 2.0 * float(np.max(np.linalg.norm(dx, axis=1))), 0.0)
+
+    def motion(rows):
+        """Each element's nodes' moves as a ball: (centre (K, 3), radius (K,)) mm."""
+        if dx is None:
+            return None
+        m = dx[rows]
+        c = m.mean(axis=1)
+        return c, np.max(np.linalg.norm(m - c[:, None], axis=2), axis=1)
+
+    def limit(ma, ia, mb, ib):
+        """For pairs of one body, elements ia and ib with motion balls ma, mb: the
+        distance under which the pair is listed; with dx, d_hat plus a bound on the
+        largest relative move of their nodes (docstring)."""
+        if dx is None:
+            return np.full(len(ia), cutoff)
+        rel = np.linalg.norm(ma[0][ia] - mb[0][ib], axis=1) + ma[1][ia] + mb[1][ib]
+        return np.minimum(cutoff, reach + 1.001 * rel + 1e-9)
+
     # point-triangle: nodes against triangle centroids, then the exact distance
     cand = _ball_pairs(cen, x, cutoff + rad)
     node, t = cand[:, 0], cand[:, 1]
     other = topo.body[node] != topo.tri_body[t]
+    lim = np.full(len(node), cutoff)
     if topo.self_contact:            # within a body: no shared node, apart in the template
         r = topo.ref3
         own = ~other & np.all(tri[t] != node[:, None], axis=1)
-        own[own] = point_triangle_distance2_np(
-            r[node[own]], r[tri[t[own], 0]], r[tri[t[own], 1]],
-            r[tri[t[own], 2]]) >= topo.self_gap ** 2
-        other |= own
-    node, t = node[other], t[other]
+        i = np.flatnonzero(own)
+        lim[i] = limit(motion(np.arange(len(x))[:, None]), node[i], motion(tri), t[i])
+        i = i[np.linalg.norm(x[node[i]] - cen[t[i]], axis=1) - rad < lim[i]]
+        i = i[point_triangle_distance2_np(r[node[i]], r[tri[t[i], 0]], r[tri[t[i], 1]],
+                                          r[tri[t[i], 2]]) >= topo.self_gap ** 2]
+        other[i] = True
+    node, t, lim = node[other], t[other], lim[other]
     rows = np.column_stack([node, tri[t]])
     keep = ~(topo.fixed[node] & np.all(topo.fixed[tri[t]], axis=1))
     keep &= ~_shares_pin(topo.pin, rows[:, :1], rows[:, 1:])
-    rows = rows[keep]
+    rows, lim = rows[keep], lim[keep]
     d2 = point_triangle_distance2_np(x[rows[:, 0]], x[rows[:, 1]], x[rows[:, 2]],
                                      x[rows[:, 3]])
-    sel = d2 < cutoff * cutoff
+    sel = d2 < lim * lim
     pt, pt_d2 = rows[sel], d2[sel]
     # edge-edge: each body's edges against the edges of the bodies after it
     mid = 0.5 * (x[edges[:, 0]] + x[edges[:, 1]])
     half = 0.5 * np.sqrt(np.max(np.sum((x[edges[:, 1]] - x[edges[:, 0]]) ** 2, axis=1)))
-    out = []
+    out, lims = [], []
     for b in np.unique(topo.edge_body):
         mine = np.flatnonzero(topo.edge_body == b)
         later = np.flatnonzero(topo.edge_body > b)
         c = _ball_pairs(mid[mine], mid[later], cutoff + 2 * half)
         out.append(np.column_stack([mine[c[:, 1]], later[c[:, 0]]]))
+        lims.append(np.full(len(c), cutoff))
     if topo.self_contact:            # within each body: no shared node, apart in the template
-        c = cKDTree(mid).query_pairs(cutoff + 2 * half, output_type="ndarray").astype(np.int64)
-        c = c[topo.edge_body[c[:, 0]] == topo.edge_body[c[:, 1]]]
-        c = c[~np.any(edges[c[:, 0]][:, :, None] == edges[c[:, 1]][:, None, :], axis=(1, 2))]
+        c = np.concatenate([np.zeros((0, 2), np.int64)] + [
+            mine[cKDTree(mid[mine]).query_pairs(cutoff + 2 * half, output_type="ndarray")]
+            for mine in (np.flatnonzero(topo.edge_body == b)
+                         for b in np.unique(topo.edge_body))])
+        me = motion(edges)
+        lim = limit(me, c[:, 0], me, c[:, 1])
+        near = np.linalg.norm(mid[c[:, 0]] - mid[c[:, 1]], axis=1) - 2 * half < lim
+        c, lim = c[near], lim[near]
+        apart = ~np.any(edges[c[:, 0]][:, :, None] == edges[c[:, 1]][:, None, :], axis=(1, 2))
+        c, lim = c[apart], lim[apart]
         r = topo.ref3
-        c = c[segment_distance2_np(r[edges[c[:, 0], 0]], r[edges[c[:, 0], 1]],
-                                   r[edges[c[:, 1], 0]], r[edges[c[:, 1], 1]])
-              >= topo.self_gap ** 2]
-        out.append(c)
+        apart = segment_distance2_np(r[edges[c[:, 0], 0]], r[edges[c[:, 0], 1]],
+                                     r[edges[c[:, 1], 0]], r[edges[c[:, 1], 1]]
+                                     ) >= topo.self_gap ** 2
+        out.append(c[apart])
+        lims.append(lim[apart])
     ea_eb = np.concatenate(out) if out else np.zeros((0, 2), np.int64)
+    lim = np.concatenate(lims) if lims else np.zeros(0)
     rows = np.column_stack([edges[ea_eb[:, 0]], edges[ea_eb[:, 1]]])
     keep = ~np.all(topo.fixed[rows], axis=1)
     keep &= ~_shares_pin(topo.pin, rows[:, :2], rows[:, 2:])
-    rows, ea_eb = rows[keep], ea_eb[keep]
+    rows, ea_eb, lim = rows[keep], ea_eb[keep], lim[keep]
     d2 = segment_distance2_np(x[rows[:, 0]], x[rows[:, 1]], x[rows[:, 2]], x[rows[:, 3]])
-    sel = d2 < cutoff * cutoff
+    sel = d2 < lim * lim
     ee, ee_d2, ea_eb = rows[sel], d2[sel], ea_eb[sel]
     return BarrierPairs(
         pt=pt, pt_w=topo.node_w[pt[:, 0]], pt_d2=pt_d2, ee=ee,

@@ -336,7 +336,7 @@ def _line_search(model, topo, x, d, E, fp, res, scale, slope, exact, dhat, solve
     big = float(np.max(np.linalg.norm(d, axis=1)))
     a0 = min(1.0, solver.dx_max / big) if big > 0 else 1.0
     move = a0 * big
-    near = build_pairs(topo, x, dhat + 2.0 * move * 1.001 + 1e-9)
+    near = build_pairs(topo, x, dhat + 2.0 * move * 1.001 + 1e-9, dx=a0 * d)
     t = ccd.max_step(x, a0 * d, near, solver.ccd_s)
     alpha = a0 * t
     # E at x: the pairs beyond d_hat that `near` adds carry no energy
