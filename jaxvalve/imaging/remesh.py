@@ -20,6 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import MeshError, ParameterError
+from .surface import _edges, _umbrella
 
 __all__ = ["remesh"]
 
@@ -47,8 +48,7 @@ def remesh(points, triangles, edge_mm: float, *, iterations: int = 5,
                              f"{iterations!r}")
     if not (0 < relax <= 1):
         raise ParameterError(f"remesh relax must lie in (0, 1]; got {relax!r}")
-    e = np.sort(np.concatenate([T0[:, [0, 1]], T0[:, [1, 2]], T0[:, [2, 0]]]), axis=1)
-    if np.unique(e, axis=0, return_counts=True)[1].max() > 2:
+    if _edges(T0)[1].max() > 2:
         raise MeshError("remesh needs a manifold surface: an edge is shared by three or "
                         "more triangles")
     index = SurfaceIndex(P0, T0)
@@ -74,8 +74,7 @@ def remesh(points, triangles, edge_mm: float, *, iterations: int = 5,
 
 def _boundary_segments(P, T):
     """The boundary edges of the mesh as segments (K, 2, 3)."""
-    e = np.sort(np.concatenate([T[:, [0, 1]], T[:, [1, 2]], T[:, [2, 0]]]), axis=1)
-    e, count = np.unique(e, axis=0, return_counts=True)
+    e, count = _edges(T)
     return P[e[count == 1]]
 
 
@@ -112,9 +111,7 @@ class _Mesh:
 
     # -------------------------------------------------------------- queries
     def edges(self):
-        T = np.asarray([t for t, ok in zip(self.F, self.live) if ok])
-        e = np.sort(np.concatenate([T[:, [0, 1]], T[:, [1, 2]], T[:, [2, 0]]]), axis=1)
-        return [tuple(map(int, x)) for x in np.unique(e, axis=0)]
+        return [tuple(map(int, x)) for x in _edges(self.arrays()[1])[0]]
 
     def edge_faces(self, a, b):
         return self.vf[a] & self.vf[b]
@@ -276,13 +273,7 @@ class _Mesh:
         from scipy.sparse import coo_matrix
         _, T = self.arrays()
         n = len(self.P)
-        e = np.unique(np.sort(np.concatenate([T[:, [0, 1]], T[:, [1, 2]], T[:, [2, 0]]]),
-                              axis=1), axis=0)
-        r = np.concatenate([e[:, 0], e[:, 1]])
-        c = np.concatenate([e[:, 1], e[:, 0]])
-        A = coo_matrix((np.ones(len(r)), (r, c)), shape=(n, n)).tocsr()
-        deg = np.asarray(A.sum(axis=1)).ravel()
-        mean = (A @ self.P) / np.maximum(deg, 1)[:, None]
+        mean = _umbrella(T, n) @ self.P
         N = np.zeros((n, 3))
         fn = np.cross(self.P[T[:, 1]] - self.P[T[:, 0]], self.P[T[:, 2]] - self.P[T[:, 0]])
         for k in range(3):
@@ -290,12 +281,10 @@ class _Mesh:
         N /= np.maximum(np.linalg.norm(N, axis=1), 1e-300)[:, None]
         d = mean - self.P
         d -= np.sum(d * N, axis=1)[:, None] * N
-        move = (deg > 0) & ~self.boundary
+        move = self.alive_vertices() & ~self.boundary
         self.P[move] += step * d[move]
         # boundary vertices: along the boundary, towards their two boundary neighbours
-        e, count = np.unique(np.sort(np.concatenate([T[:, [0, 1]], T[:, [1, 2]],
-                                                     T[:, [2, 0]]]), axis=1),
-                             axis=0, return_counts=True)
+        e, count = _edges(T)
         b = e[count == 1]
         if len(b):
             r = np.concatenate([b[:, 0], b[:, 1]])

@@ -4,7 +4,8 @@ voxels where the blurred intensity crosses that level, not along voxel faces), i
 patient coordinates; the largest connected piece; Taubin smoothing, which removes noise
 without shrinking the surface (a Laplacian step followed by a negative one); and, for a
 target edge length, isotropic remeshing onto that surface (`jaxvalve.imaging.remesh`:
-even, nearly equilateral triangles in place of marching cubes' slivers).  `mesh_quality` measures the result;
+even, nearly equilateral triangles in place of marching cubes' slivers).  `mesh_quality`
+measures the result;
 `jaxvalve.geometry.surface_query.distance_to_surface` compares it with another surface."""
 from __future__ import annotations
 
@@ -26,7 +27,8 @@ def wall_surface(volume: Volume, seg: Segmentation, *, edge_mm: float | None = N
     from scipy import ndimage
     from skimage import measure
     sp = volume.spacing
-    if edge_mm is not None and not (np.isfinite(edge_mm) and sp.min() <= edge_mm <= 20 * sp.max()):
+    if edge_mm is not None and not (np.isfinite(edge_mm)
+                                    and sp.min() <= edge_mm <= 20 * sp.max()):
         raise ParameterError(f"edge_mm must lie in [{sp.min():g}, {20 * sp.max():g}] mm (the "
                              f"smallest voxel to 20 voxels); got {edge_mm!r}")
     if not (isinstance(smooth_iterations, int) and 0 <= smooth_iterations <= 200):
