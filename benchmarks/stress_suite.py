@@ -206,6 +206,7 @@ class RunRecord:
     path: str = ""                   # the closure path that gave the result (fallback)
     steps: int = 0
     residual: float = math.nan
+    limit_pressure: float = math.nan  # mmHg: the highest equilibrium, where a limit point
     stage1: str = ""
     crossings: int = -1
     ipctk: str = ""                  # the IPC toolkit's check: clean, intersects, not run
@@ -296,6 +297,7 @@ def _judge(rec: RunRecord, valve, ls, scene: Scene):
         except JaxvalveError as e:
             notes.append(f"metrics: {type(e).__name__}: {e}")
     if ls.limit_point:          # the state: the converged equilibrium at the limit pressure
+        rec.limit_pressure = float(rep.limit_pressure)
         rec.outcome = "reported"
         rec.cause = ls.ramp.describe() + (" [state: " + "; ".join(notes) + "]"
                                           if notes else "")
