@@ -48,7 +48,22 @@ def _parse(argv):
                     help="template b, E in {0.1, 1, 20}, P in {3, 80}, fewer hard cases")
     ap.add_argument("--out", default=str(HERE / "results"), help="results folder")
     ap.add_argument("--name", default="stress", help="file stem of the outputs")
+    ap.add_argument("--render", metavar="CSV",
+                    help="run nothing: print the tables of a finished run from its CSV "
+                         "(with today's analysis of its limit points) and write NAME.txt")
     return ap.parse_args(argv)
+
+
+def _text(S, records, head: str) -> str:
+    t = S.summarise(records)["all", ""]
+    rates = [S.pass_rate(records, p) for p in ("float64", "float32")
+             if ("all", p) in S.summarise(records)]
+    return (head + f"Runs tried {t['tried']}, converged {t['converged']}, reported as "
+            f"non-converged {t['reported']} (of which caught by the state guard of "
+            f"valve.close {t['guard']}; at a limit point the inflation analysis predicts "
+            f"{t['limit']}), silently wrong {t['silent']}.\n"
+            + "".join(f"Converged or at a predicted limit point, {r}.\n" for r in rates)
+            + "\n" + S.format_table(records) + "\n")
 
 
 def main(argv=None):
@@ -58,13 +73,27 @@ def main(argv=None):
     from jaxvalve.geometry.leaflet_mesh import mesh_leaflet
 
     args = _parse(argv)
+    out = Path(args.out)
+    if args.render:
+        records = S.read_csv(args.render)
+        old = Path(args.render).with_suffix(".txt")
+        head = ""
+        if old.exists():          # the finished run's settings and wall time
+            import re
+            first, rest = old.read_text().split("\n", 1)
+            wall = re.search(r"([\d.]+ min wall)", rest.split("\n\n", 1)[0])
+            head = first.rstrip(".") + (f"; {wall.group(1)}." if wall else ".") + "\n"
+        text = _text(S, records, head)
+        print(text)
+        (out / f"{args.name}.txt").write_text(text)
+        print(f"wrote {out / (args.name + '.txt')}")
+        return 1 if S.summarise(records)["all", ""]["silent"] else 0
     if args.quick:
         args.templates, args.E, args.P = ["b"], [0.1, 1.0, 20.0], [3.0, 80.0]
     kw = dict(rtol=args.rtol, max_steps=args.max_steps)
     records = []
     t_start = time.perf_counter()
 
-    out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     partial = out / f"{args.name}.partial.csv"
     partial.unlink(missing_ok=True)
@@ -128,12 +157,9 @@ def main(argv=None):
     head = (f"jaxvalve stress suite: h = {args.h} mm ({len(base.triangles)} triangles a "
             f"leaflet), rtol {args.rtol:g}, at most {args.max_steps} FIRE steps a closure; "
             f"models {' '.join(args.models)}; precisions {' '.join(args.precisions)}; "
-            f"templates {' '.join(args.templates)}; E {args.E} MPa; P {args.P} mmHg.\n"
-            f"Runs tried {t['tried']}, converged {t['converged']}, reported as non-converged "
-            f"{t['reported']} (of which caught by the state guard of valve.close "
-            f"{t['guard']}), silently "
-            f"wrong {t['silent']}; {wall / 60:.1f} min wall.\n")
-    text = head + "\n" + S.format_table(records) + "\n"
+            f"templates {' '.join(args.templates)}; E {args.E} MPa; P {args.P} mmHg; "
+            f"{wall / 60:.1f} min wall.\n")
+    text = _text(S, records, head)
     print(text)
     (out / f"{args.name}.txt").write_text(text)
     S.write_csv(records, out / f"{args.name}.csv")

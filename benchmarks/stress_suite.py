@@ -53,13 +53,18 @@ from jaxvalve.geometry.template import PAPER_TEMPLATES, Template
 __all__ = ["RunRecord", "MATRIX_E", "MATRIX_P", "STRESS_H", "STRESS_MAX_STEPS",
            "paper_templates", "make_valve", "mapped_mesh", "closed_state", "perturbed_mesh",
            "poor_mesh", "penetrated_start",
-           "run_group", "run_penetration", "classify", "summarise", "OUTCOMES"]
+           "run_group", "run_penetration", "classify", "summarise", "pass_rate",
+           "limit_analysis", "read_csv", "BULGE_RADIUS_MM", "OUTCOMES"]
 
 MATRIX_E = (0.05, 0.1, 1.0, 10.0, 20.0)      # MPa
 MATRIX_P = (3.0, 80.0, 200.0)                # mmHg
 STRESS_H = 2.0                               # mm (h = 3 mm does not converge; docs/known-limits.md)
 STRESS_MAX_STEPS = 4000                      # FIRE steps a solve
 HE_PRESSURE = 3.0
+#: the bulge radii (mm, reference) that can explain a limit point (`limit_analysis`): at
+#: least a millimetre (a few elements of the stress mesh), at most the root's annulus
+#: radius (12 mm): a leaflet's belly cannot balloon as a sphere larger than the root
+BULGE_RADIUS_MM = (1.0, 12.0)
 OUTCOMES = ("converged", "reported", "silent")
 #: results of `valve.close(..., check_state=True)`: the solver met the tolerance, the
 #: state check failed (without the check these runs would be silently wrong)
@@ -520,35 +525,107 @@ def _emit(fn, rec):
         fn(rec)
 
 
+# ----------------------------------------------------------------------------- analysis
+def _extra(tag: str) -> dict:
+    """`run_group`'s ``extra`` back from its tag ("Jm=0.3", "E1=0.05 E2=0.3 E3=1.2")."""
+    out = {}
+    for item in tag.split():
+        k, v = item.split("=", 1)
+        out[k] = {"True": True, "False": False}.get(v, v)
+        if isinstance(out[k], str):
+            try:
+                out[k] = float(v)
+            except ValueError:
+                pass
+    return out
+
+
+def limit_analysis(rec: RunRecord) -> tuple[bool, str]:
+    """(predicted, text): whether the inflation analysis (`jaxvalve.mechanics.inflation`)
+    explains the run's limit point.  Predicted where the run's material has an inflation
+    limit and the limit pressure is that of a balloon whose reference radius lies in
+    `BULGE_RADIUS_MM`; the text states the analysis (the peak's stretch and P R0, the
+    implied radius, or that the material stiffens and has none)."""
+    from jaxvalve.mechanics.inflation import inflation_limit
+    scene = Scene(model=rec.model, E=rec.E, **_extra(rec.extra))
+    lim = inflation_limit(scene.material(), scene.thickness)
+    p = rec.limit_pressure
+    if not lim.exists:
+        return False, lim.describe() + ": not predicted"
+    r0 = lim.radius(p)
+    lo, hi = BULGE_RADIUS_MM
+    ok = lo <= r0 <= hi
+    return ok, lim.describe(p) + (": predicted" if ok else
+                                  f": not predicted (outside {lo:g}-{hi:g} mm)")
+
+
+def read_csv(path) -> list:
+    """The `RunRecord`s of a CSV written by `write_csv` / `append_csv`."""
+    import csv
+    types = {f.name: f.type for f in dataclasses.fields(RunRecord)}
+    conv = {"float": float, "int": int, "str": str}
+    out = []
+    with open(path, newline="") as f:
+        for row in csv.DictReader(f):
+            rec = RunRecord(**{k: conv[types[k]](v) for k, v in row.items() if k in types})
+            if rec.result == "limit_point" and math.isnan(rec.limit_pressure):
+                # files written before the field: the pressure is in the cause
+                import re
+                m = re.search(r"no equilibrium above ([\d.]+)", rec.cause)
+                rec.limit_pressure = float(m.group(1)) if m else math.nan
+            out.append(rec)
+    return out
+
+
 # ----------------------------------------------------------------------------- tables
 def summarise(records) -> dict:
-    """{(model, precision): {'tried', 'converged', 'reported', 'silent', 'guard'}} plus
-    ('all', ''); 'guard' counts the reported runs whose solver met the tolerance but whose
-    state failed `valve.close`'s check (`GUARD_RESULTS`): silently wrong without it."""
+    """{(model, precision): {'tried', 'converged', 'reported', 'silent', 'guard',
+    'limit'}} plus ('all', '') and ('all', precision); 'guard' counts the reported runs
+    whose solver met the tolerance but whose state failed `valve.close`'s check
+    (`GUARD_RESULTS`): silently wrong without it; 'limit' the runs that ended at a limit
+    point the inflation analysis predicts (`limit_analysis`)."""
     table = {}
     for r in records:
-        for key in ((r.model, r.precision), ("all", "")):
+        lim = r.result == "limit_point" and r.outcome == "reported" and limit_analysis(r)[0]
+        keys = [(r.model, r.precision), ("all", "")]
+        if r.precision in PRECISIONS:
+            keys.append(("all", r.precision))
+        for key in keys:
             row = table.setdefault(key, dict(tried=0, converged=0, reported=0, silent=0,
-                                             guard=0))
+                                             guard=0, limit=0))
             row["tried"] += 1
             row[r.outcome] += 1
             row["guard"] += r.result in GUARD_RESULTS
+            row["limit"] += lim
     return table
+
+
+def pass_rate(records, precision: str = "float64") -> str:
+    """One line: the runs of ``precision`` that converged or ended at a predicted limit
+    point, of those tried (the suite's target is 95 % in float64)."""
+    row = summarise(records).get(("all", precision))
+    if row is None:
+        return f"{precision}: no runs"
+    good = row["converged"] + row["limit"]
+    return (f"{precision}: converged {row['converged']} + at a predicted limit point "
+            f"{row['limit']} = {good} of {row['tried']} runs ({100 * good / row['tried']:.1f} %)")
 
 
 def format_table(records) -> str:
     """The pass table (per model x precision) and the list of non-converged runs."""
     t = summarise(records)
     lines = ["| model | precision | tried | converged | reported | silently wrong "
-             "| of the reported: caught by the state guard |",
-             "|---|---|---|---|---|---|---|"]
+             "| of the reported: caught by the state guard | of the reported: at a "
+             "predicted limit point |",
+             "|---|---|---|---|---|---|---|---|"]
     keys = sorted((k for k in t if k[0] != "all"),
                   key=lambda k: (MODELS.index(k[0]) if k[0] in MODELS else 9,
                                  PRECISIONS.index(k[1]) if k[1] in PRECISIONS else 9))
     for k in keys + [("all", "")]:
         row = t[k]
         lines.append(f"| {k[0]} | {k[1]} | {row['tried']} | {row['converged']} | "
-                     f"{row['reported']} | {row['silent']} | {row['guard']} |")
+                     f"{row['reported']} | {row['silent']} | {row['guard']} | "
+                     f"{row['limit']} |")
     by_case = {}
     for r in records:
         c = by_case.setdefault(r.case, dict(tried=0, converged=0, reported=0, silent=0,
@@ -567,6 +644,17 @@ def format_table(records) -> str:
             causes[r.result] = causes.get(r.result, 0) + 1
     lines += ["", "Results of the runs that did not converge: "
               + ", ".join(f"{k} {v}" for k, v in sorted(causes.items(), key=lambda kv: -kv[1]))]
+    lims = [r for r in records if r.result == "limit_point" and r.outcome == "reported"]
+    if lims:
+        lines += ["", "Limit points and the inflation analysis "
+                  "(`jaxvalve.mechanics.inflation`; predicted where the material has an "
+                  f"inflation limit and the bulge radius it implies lies within "
+                  f"{BULGE_RADIUS_MM[0]:g}-{BULGE_RADIUS_MM[1]:g} mm):", "",
+                  "| template | mesh | model | E MPa | P mmHg | extra | limit mmHg | analysis |",
+                  "|---|---|---|---|---|---|---|---|"]
+        for r in lims:
+            lines.append(f"| {r.template} | {r.mesh} | {r.model} | {r.E:g} | {r.P:g} | "
+                         f"{r.extra} | {r.limit_pressure:.4g} | {limit_analysis(r)[1]} |")
     bad = [r for r in records if r.outcome != "converged"]
     if bad:
         lines += ["", "Runs that did not converge (reported) or went silently wrong:", "",

@@ -251,8 +251,9 @@ class BatchResult:
 
     def rows(self) -> list[dict]:
         """One flat dict per member: model, parameters, every metric, converged, and per
-        load the result, steps, residual, stall cause, the path that closed it and the
-        failure it fell back after (the CSV of `jaxvalve sweep`)."""
+        load the result, steps, residual, stall cause, the path that closed it, the
+        failure it fell back after and the limit pressure (mmHg, None but at a limit
+        point) (the CSV of `jaxvalve sweep`)."""
         out = []
         for m in self.members:
             r = dict(member=m.index, model=m.model, **m.parameters, **m.summary(),
@@ -260,7 +261,8 @@ class BatchResult:
             for tag, s in zip(("he", "closing"), m.solves):
                 r.update({f"result_{tag}": s.result, f"steps_{tag}": s.steps,
                           f"residual_{tag}": s.residual, f"cause_{tag}": s.cause or "",
-                          f"path_{tag}": s.path or "", f"fallback_{tag}": s.fallback or ""})
+                          f"path_{tag}": s.path or "", f"fallback_{tag}": s.fallback or "",
+                          f"limit_pressure_{tag}": s.limit_pressure})
             out.append(r)
         return out
 

@@ -61,8 +61,21 @@ class SimulationResult:
         error): a central coaptation point (the top of the three-leaflet zone, h_E) above
         every commissure, a sign of surplus tissue: the leaflets meet higher than the
         points they hang from.  None for a state that is not an equilibrium (h_E is
-        measured at the effective-height load: its solve must have converged)."""
+        measured at the effective-height load: its solve must have converged).  A closure
+        that ended at a limit point gets the inflation analysis of its material
+        (`jaxvalve.mechanics.inflation`): the bulge radius that explains the limit, or that
+        the material stiffens and so the limit is not the membrane's inflation limit."""
         out = []
+        lim = [s for s in self.solves if s.result == "limit_point"]
+        if lim:
+            from .mechanics.inflation import inflation_limit
+            p = lim[0].limit_pressure
+            a = inflation_limit(self.scene.material(), self.scene.thickness)
+            out.append(f"limit point: no equilibrium above {p:.3g} mmHg on the branch "
+                       "followed; " + (a.describe(p) if a.exists else a.describe() +
+                                       ", so this limit is not the membrane's inflation "
+                                       "limit but the end of the branch the continuation "
+                                       "followed (docs/limit-points.md)"))
         heights = np.asarray(self.valve.root.commissure_heights, float)
         if (self.solves[0].converged and np.isfinite(self.h_E)
                 and self.h_E > heights.max()):

@@ -97,6 +97,7 @@ def test_unconverged_member_is_reported_with_its_residual(runs):
     row = second.rows()[2]
     assert row["converged"] is False and row["residual_closing"] == closing.residual
     assert row["result_closing"] == "max_steps_reached" and row["steps_closing"] == 2000
+    assert row["limit_pressure_closing"] is None        # a limit pressure only at a limit
     # and why it stopped (`jaxvalve.solvers.stall`): in the member's report, the error and the row
     assert closing.cause and closing.cause in msg and row["cause_closing"] == closing.cause
     assert he.cause is None and row["cause_he"] == ""

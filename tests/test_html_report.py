@@ -5,6 +5,7 @@ Chromium comes from the system's packages (`.ci/run` installs Debian's ``chromiu
 where it is missing the browser tests are skipped, unless JAXVALVE_REQUIRE_BROWSER=1 (as
 in the CI), which makes a missing browser a failure.
 """
+import html
 import json
 import os
 import re
@@ -73,8 +74,20 @@ def test_a_converged_report_says_so(result):
     assert cls == "good" and text.startswith("Converged") and "5.0e-05" in text
     lim = (ok[0], dataclasses.replace(ok[1], converged=False, result="limit_point",
                                       limit_pressure=37.9))
-    cls, text = _banner(html_report(dataclasses.replace(result, solves=lim)))
+    page = html_report(dataclasses.replace(result, solves=lim))
+    cls, text = _banner(page)
     assert cls == "bad" and text.startswith("LIMIT POINT") and "37.9 mmHg" in text
+    # the warnings (page, JSON, console) say whether the material explains the limit
+    assert result.scene.model == "stvk"
+    w, = [w for w in dataclasses.replace(result, solves=lim).warnings
+          if w.startswith("limit point")]
+    assert "stvk stiffens" in w and "not the membrane's inflation limit" in w
+    assert html.escape(w) in page
+    nh = dataclasses.replace(result, solves=lim,
+                             scene=result.scene.replace(model="neo-hookean", E=0.1))
+    w, = [w for w in nh.warnings if w.startswith("limit point")]   # P R0 = 1.2394 mu H, mu = E / 3: R0 = P R0 / (37.9 mmHg)
+    r0 = 1.2394 * 0.1 / 3 * 0.3 / (37.9 * 1.33322e-4)
+    assert "peaks at a stretch of 1.383" in w and f"radius {r0:.2f} mm" in w
 
 
 def _chromium():

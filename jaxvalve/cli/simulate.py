@@ -178,8 +178,8 @@ def run(args) -> int:
     lim = [r for r in result.solves if r.result == "limit_point"]
     if lim:
         print(f"jaxvalve simulate: warning: LIMIT POINT: the valve has no equilibrium above "
-              f"{lim[0].limit_pressure:.3g} mmHg (the leaflets balloon out without end: a "
-              "membrane that does not stiffen has an inflation limit, docs/limit-points.md); the "
+              f"{lim[0].limit_pressure:.3g} mmHg (the inflation analysis of the material is "
+              "in the warning above, docs/limit-points.md); the "
               f"metrics are of the equilibrium at {lim[0].limit_pressure:.3g} mmHg, not at "
               f"{lim[-1].pressure:g} mmHg", file=sys.stderr)
         return 4

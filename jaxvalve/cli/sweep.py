@@ -251,6 +251,7 @@ def _run_groups(args, scene, groups, total, hb):
     """Close every member of every (model, members) group; the CSV rows, in order."""
     from ..batch import simulate_batch
     from ..geometry.leaflet_mesh import mesh_leaflet
+    from ..mechanics.inflation import inflation_limit
     from ..valve import model as V
 
     say = hb.say
@@ -264,8 +265,12 @@ def _run_groups(args, scene, groups, total, hb):
     for model, members in groups:
         res = simulate_batch(scene.replace(model=model), [m for _, m in members],
                              valve=valve, throw=False, progress=lambda m: say("  " + m))
-        for (labels, _), row in zip(members, res.rows()):
+        for (labels, mat), row in zip(members, res.rows()):
             row = {"table": args.table, **labels, **row}
+            lims = [row[f"limit_pressure_{k}"] for k in ("he", "closing")
+                    if row[f"result_{k}"] == "limit_point"]
+            if lims:            # does the material explain it? (docs/limit-points.md)
+                row["inflation"] = inflation_limit(mat, scene.thickness).describe(lims[0])
             row["member"] = len(rows)
             row.update(_paper(args.table, model, labels))
             rows.append(row)
@@ -317,6 +322,7 @@ def run(args) -> int:
             + "): " + ", ".join(f"{t} mmHg {r['result_' + k]} residual {r['residual_' + k]:.2e}"
                                 for k, t in (("he", args.he_pressure), ("closing", args.pressure))
                                 if r["result_" + k] != "successful")
+            + (f" ({r['inflation']})" if r.get("inflation") else "")
             for r in bad)
         print(f"jaxvalve sweep: warning: {len(bad)} of {len(rows)} members did NOT converge "
               f"(rtol {args.rtol:g}): {what}", file=sys.stderr)

@@ -5,6 +5,7 @@ cause, or a clear error); never silently wrong.  Benchmark template at h = 2 mm 
 triangles), at most 3000 FIRE steps a closure.  The full matrix is
 ``benchmarks/stress.py``.
 """
+import dataclasses
 import re
 
 import numpy as np
@@ -132,5 +133,36 @@ def test_summary_table_counts(valve):
     assert [r.outcome for r in recs] == ["reported"] * 3
     assert all("template b must exceed" in r.cause for r in recs)
     t = S.summarise(recs)
-    assert t["all", ""] == dict(tried=3, converged=0, reported=3, silent=0, guard=0)
-    assert "| all |  | 3 | 0 | 3 | 0 | 0 |" in S.format_table(recs)
+    assert t["all", ""] == dict(tried=3, converged=0, reported=3, silent=0, guard=0, limit=0)
+    assert "| all |  | 3 | 0 | 3 | 0 | 0 | 0 |" in S.format_table(recs)
+
+
+def test_limit_points_are_judged_by_the_inflation_analysis(tmp_path):
+    """A limit point counts toward the suite's target only where the material has an
+    inflation limit and the limit pressure implies a bulge of a plausible size: the
+    neo-Hookean valve's limit at 8.56 mmHg (E = 0.05 MPa: P R0 = 1.2394 mu H) is that of a
+    bulge of reference radius 5.4 mm; a StVK valve's 'limit' is not the material's.  The
+    records survive a CSV round trip, and the pass rate counts them."""
+    def rec(model, E, p_lim, extra=""):
+        return S.RunRecord(case="matrix", template="b", mesh="regular", model=model,
+                           precision="float64", E=E, P=80.0, extra=extra,
+                           outcome="reported", result="limit_point", limit_pressure=p_lim)
+    nh, stvk = rec("neo-hookean", 0.05, 8.564), rec("stvk", 0.05, 63.02)
+    piecewise = rec("mass-spring", 0.3, 22.6, "E1=0.05 E2=0.3 E3=1.2")
+    ok, text = S.limit_analysis(nh)
+    r0 = 1.2394 * 0.05 / 3 * 0.3 / (8.564 * 1.33322e-4)
+    assert ok and f"{r0:.2f} mm" in text and text.endswith("predicted")
+    ok, text = S.limit_analysis(stvk)
+    assert not ok and "no inflation limit" in text
+    ok, text = S.limit_analysis(piecewise)     # 71 mm: far larger than the root
+    assert not ok and "outside" in text
+    conv = dataclasses.replace(nh, result="successful", outcome="converged",
+                               limit_pressure=float("nan"))
+    recs = [nh, stvk, piecewise, conv]
+    S.write_csv(recs, tmp_path / "r.csv")
+    back = S.read_csv(tmp_path / "r.csv")
+    assert [repr(r.as_row()) for r in back] == [repr(r.as_row()) for r in recs]  # nan too
+    assert S.summarise(back)["all", "float64"]["limit"] == 1
+    assert S.pass_rate(back) == ("float64: converged 1 + at a predicted limit point 1 = 2 "
+                                 "of 4 runs (50.0 %)")
+    assert "| stvk | float64 | 1 | 0 | 1 | 0 | 0 | 0 |" in S.format_table(back)

@@ -1,0 +1,140 @@
+"""The inflation limit of a membrane material: the most pressure a balloon of it holds.
+
+A spherical balloon of reference radius R0 and thickness H, stretched equibiaxially by
+lambda, holds the pressure
+
+    P(lambda) = H w'(lambda) / (R0 lambda^2),
+
+w(lambda) the material's strain energy per reference volume at C = lambda^2 I (virtual
+work: the strain energy 4 pi R0^2 H w against the pressure's work on the volume
+4/3 pi R0^3 lambda^3).  Where P (lambda) has a maximum, no equilibrium exists above it and
+the balloon inflates without end: neo-Hookean, P R0 / H = 2 mu (1/lambda - 1/lambda^7),
+peaks at lambda = 7^(1/6) with 1.2394 mu; the linear springs of `MassSpring` (three to a
+triangle, w = 3/2 E (lambda - 1)^2) peak at lambda = 2 with 3 E / 4.  A material that
+stiffens enough (St.Venant-Kirchhoff, Gent with a small Jm) has no maximum: P grows until
+the stretch limit, and such a balloon has an equilibrium at every pressure.
+
+`inflation_limit` finds the first maximum of P R0 numerically from the material's own
+`energy_density` (so every model, and every parameter set, is covered by one
+computation).  `InflationLimit.radius` turns an observed limit pressure into the
+reference radius of the balloon that would peak there: the size of the bulge the limit
+point implies, to compare with the valve's (a leaflet's belly, a few mm to about 10 mm).
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..errors import ParameterError
+from .materials import SpringGeometry
+from .problem import MMHG
+
+__all__ = ["InflationLimit", "balloon_pressure", "inflation_limit"]
+
+
+def _one_triangle_geometry():
+    """`SpringGeometry` of an equilateral triangle whose first edge lies along the fibres."""
+    ang = np.radians([0.0, 60.0, 120.0])
+    unit = np.stack([np.cos(ang), np.sin(ang)], axis=-1)[None]          # (1, 3, 2)
+    return SpringGeometry(unit=jnp.asarray(unit), cos2=jnp.asarray(np.cos(ang)[None] ** 2))
+
+
+def _energy(material, stretch):
+    """w (MPa) at C = stretch^2 I, one triangle."""
+    c = stretch**2 * jnp.eye(2, dtype=stretch.dtype)[None]
+    return material.energy_density(c, _one_triangle_geometry())[0]
+
+
+@jax.jit
+def _curve(material, stretch):
+    """(w'(lambda) (MPa), admissible) at each stretch (K,); material a pytree (traced)."""
+    eye = jnp.eye(2, dtype=stretch.dtype)[None]
+    dw = jax.vmap(jax.grad(lambda s: _energy(material, s)))(stretch)
+    ok = jax.vmap(lambda s: material.stretch_ok(s**2 * eye)[0])(stretch)
+    return dw, ok
+
+
+def balloon_pressure(material, thickness: float, stretch) -> np.ndarray:
+    """P R0 (MPa mm = N/mm) of a spherical balloon of ``material`` at equibiaxial stretch
+    ``stretch`` (array, > 1), thickness (mm); nan past the material's stretch limit."""
+    lam = np.atleast_1d(np.asarray(stretch, float))
+    dw, ok = _curve(material, jnp.asarray(lam, dtype=jnp.float64))
+    out = float(thickness) * np.asarray(dw, float) / lam**2
+    return np.where(np.asarray(ok) & np.isfinite(out), out, np.nan)
+
+
+@dataclasses.dataclass(frozen=True)
+class InflationLimit:
+    """The peak of a balloon's pressure-stretch curve, or its absence.
+
+    model: the material's name.  stretch: the equibiaxial stretch at the peak (None: P R0
+    grows up to ``stretch_max`` or the stretch limit, no inflation limit).  pr: P R0 at
+    the peak (MPa mm = N/mm; None without a peak).  stretch_max: how far it was searched."""
+
+    model: str
+    stretch: float | None
+    pr: float | None
+    stretch_max: float
+
+    @property
+    def exists(self) -> bool:
+        return self.pr is not None
+
+    def pressure(self, radius: float) -> float:
+        """P_max (mmHg) of a balloon of reference radius ``radius`` (mm)."""
+        if not self.exists:
+            return float("inf")
+        return self.pr / float(radius) / MMHG
+
+    def radius(self, pressure: float) -> float:
+        """The reference radius (mm) of the balloon whose limit is ``pressure`` (mmHg)."""
+        if not self.exists:
+            return float("nan")
+        return self.pr / (float(pressure) * MMHG)
+
+    def describe(self, pressure: float | None = None) -> str:
+        """One line: the peak (or why there is none), and with ``pressure`` (mmHg, an
+        observed limit point) the bulge radius that would explain it."""
+        if not self.exists:
+            return (f"{self.model} stiffens: a balloon of it holds every pressure (P R0 grows "
+                    f"up to a stretch of {self.stretch_max:.3g}), so the material has no "
+                    "inflation limit")
+        s = (f"a {self.model} balloon peaks at a stretch of {self.stretch:.3f} with "
+             f"P R0 = {self.pr:.4g} N/mm")
+        if pressure is not None:
+            s += (f": a limit at {pressure:.3g} mmHg is that of a bulge of reference "
+                  f"radius {self.radius(pressure):.2f} mm")
+        return s
+
+
+def inflation_limit(material, thickness: float, stretch_max: float = 8.0,
+                    n: int = 2000) -> InflationLimit:
+    """The first maximum of `balloon_pressure` over stretches 1 < lambda <= stretch_max
+    (a grid of n points, refined by a bounded scalar search), or none.  ``material`` a
+    validated `jaxvalve.mechanics.materials` model with concrete parameters."""
+    from scipy.optimize import minimize_scalar
+    h = float(thickness)
+    if not (np.isfinite(h) and h > 0):
+        raise ParameterError(f"inflation_limit: thickness must be > 0 mm; got {thickness}")
+    if not (np.isfinite(stretch_max) and stretch_max > 1.0):
+        raise ParameterError(f"inflation_limit: stretch_max must be > 1; got {stretch_max}")
+    material.validate()
+    name = getattr(material, "name", type(material).__name__)
+    lam = np.linspace(1.0, float(stretch_max), int(n))[1:]
+    g = balloon_pressure(material, h, lam)
+    valid = np.isfinite(g)
+    if not valid.any():
+        raise ParameterError(f"inflation_limit: {name} has no admissible stretch above 1")
+    last = int(np.flatnonzero(valid)[-1])
+    # the first grid point that beats both neighbours (a plateau counts at its start)
+    peaks = np.flatnonzero((g[1:last] > g[:last - 1]) & (g[1:last] >= g[2:last + 1])) + 1
+    if not len(peaks):
+        return InflationLimit(name, None, None, float(lam[last]))
+    i = int(peaks[0])
+    res = minimize_scalar(lambda s: -float(balloon_pressure(material, h, s)[0]),
+                          bounds=(lam[i - 1], lam[i + 1]), method="bounded",
+                          options=dict(xatol=1e-10))
+    return InflationLimit(name, float(res.x), float(-res.fun), float(stretch_max))
