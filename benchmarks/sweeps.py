@@ -6,7 +6,8 @@ Runs ``jaxvalve sweep --table N --h H --out DIR`` for each table, one after the 
 and writes DIR/tableN.txt: the command and the platform, the sweep's table and its
 warnings (every member that did not converge, and for a limit point the inflation
 analysis of its material, `jaxvalve.mechanics.inflation`), a count line, and its
-progress (stderr, XLA's loader lines removed).  The CLI itself writes tableN.csv and
+progress (stderr, XLA's loader lines and the
+heartbeat removed).  The CLI itself writes tableN.csv and
 tableN.png beside it.  Extra arguments after ``--`` go to every sweep.
 """
 from __future__ import annotations
@@ -20,7 +21,8 @@ from pathlib import Path
 
 
 def _noise(line: str) -> bool:
-    return "cpu_aot_loader" in line or "cpu_aot" in line
+    """XLA's loader lines and the CLI's 2-second heartbeat ("... 12 s in: ...")."""
+    return "cpu_aot" in line or line.startswith("[jaxvalve sweep] ... ")
 
 
 def _count(csv_path: Path) -> str:
@@ -53,7 +55,7 @@ def main(argv=None):
                               "main; sys.exit(main(sys.argv[1:]))", *cmd],
                              capture_output=True, text=True)
         wall = time.perf_counter() - t0
-        err = [ln for ln in run.stderr.splitlines() if not _noise(ln)]
+        err = [ln.replace(str(out), "DIR") for ln in run.stderr.splitlines() if not _noise(ln)]
         warn = [ln for ln in err if ln.startswith("jaxvalve sweep:")]
         prog = [ln for ln in err if not ln.startswith("jaxvalve sweep:")]
         shown = " ".join(c if c != str(out) else "DIR" for c in cmd)
@@ -61,7 +63,7 @@ def main(argv=None):
                 f"{platform_summary()}", run.stdout.rstrip(), *warn]
         if (out / f"table{table}.csv").exists():
             text.append(_count(out / f"table{table}.csv"))
-        text += ["", "# progress (stderr, XLA loader lines removed)", *prog]
+        text += ["", "# progress (stderr, XLA loader and heartbeat lines removed)", *prog]
         (out / f"table{table}.txt").write_text("\n".join(text) + "\n")
         print("\n".join(text[:3 + len(warn)]), flush=True)
         print(f"wrote {out / f'table{table}.txt'}")
