@@ -336,7 +336,8 @@ def test_a_central_coaptation_point_above_the_commissures_is_flagged(run):
             scene=result.scene, valve=SimpleNamespace(root=root), x=result.x,
             x_he=result.x_he, metrics=result.metrics,
             metrics_he=SimpleNamespace(h_e=h),
-            solves=(SimpleNamespace(converged=converged),) * 2, timings={})
+            solves=(SimpleNamespace(converged=converged, result="successful" if converged
+                                     else "max_steps_reached"),) * 2, timings={})
     (w,) = with_h_E(18.5).warnings
     assert "surplus tissue" in w and "18.5 mm" in w and "16.7-16.9 mm" in w
     assert with_h_E(16.85).warnings == () and with_h_E(float("nan")).warnings == ()
