@@ -55,9 +55,9 @@ def _parse(argv):
 
 
 def _text(S, records, head: str) -> str:
-    t = S.summarise(records)["all", ""]
-    rates = [S.pass_rate(records, p) for p in ("float64", "float32")
-             if ("all", p) in S.summarise(records)]
+    table = S.summarise(records)
+    t = table["all", ""]
+    rates = [S.pass_rate(records, p) for p in ("float64", "float32") if ("all", p) in table]
     return (head + f"Runs tried {t['tried']}, converged {t['converged']}, reported as "
             f"non-converged {t['reported']} (of which caught by the state guard of "
             f"valve.close {t['guard']}; at a limit point the inflation analysis predicts "
@@ -75,6 +75,7 @@ def main(argv=None):
     args = _parse(argv)
     out = Path(args.out)
     if args.render:
+        out.mkdir(parents=True, exist_ok=True)
         records = S.read_csv(args.render)
         old = Path(args.render).with_suffix(".txt")
         head = ""

@@ -35,6 +35,7 @@ runs a small part (`tests/conftest.py` loads this file as the module ``stress_su
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import time
 import traceback
@@ -546,10 +547,16 @@ def limit_analysis(rec: RunRecord) -> tuple[bool, str]:
     limit and the limit pressure is that of a balloon whose reference radius lies in
     `BULGE_RADIUS_MM`; the text states the analysis (the peak's stretch and P R0, the
     implied radius, or that the material stiffens and has none)."""
+    return _limit_analysis(rec.model, rec.E, rec.extra, rec.limit_pressure)
+
+
+@functools.lru_cache(maxsize=None)
+def _limit_analysis(model, E, extra, p):
     from jaxvalve.mechanics.inflation import inflation_limit
-    scene = Scene(model=rec.model, E=rec.E, **_extra(rec.extra))
+    if not (math.isfinite(p) and p > 0):
+        return False, f"limit pressure unknown ({p}): not predicted"
+    scene = Scene(model=model, E=E, **_extra(extra))
     lim = inflation_limit(scene.material(), scene.thickness)
-    p = rec.limit_pressure
     if not lim.exists:
         return False, lim.describe() + ": not predicted"
     r0 = lim.radius(p)

@@ -9,6 +9,7 @@ measure the coaptation characteristics (docs/metrics.md) on both states.  Return
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from typing import Any, Callable
 
@@ -55,7 +56,7 @@ class SimulationResult:
         """Effective height (mm), measured at the effective-height load."""
         return self.metrics_he.h_e
 
-    @property
+    @functools.cached_property
     def warnings(self) -> tuple:
         """Findings about the design a surgeon would want flagged (str each; none is an
         error): a central coaptation point (the top of the three-leaflet zone, h_E) above

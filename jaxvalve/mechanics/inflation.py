@@ -42,27 +42,34 @@ def _one_triangle_geometry():
     return SpringGeometry(unit=jnp.asarray(unit), cos2=jnp.asarray(np.cos(ang)[None] ** 2))
 
 
-def _energy(material, stretch):
-    """w (MPa) at C = stretch^2 I, one triangle."""
-    c = stretch**2 * jnp.eye(2, dtype=stretch.dtype)[None]
-    return material.energy_density(c, _one_triangle_geometry())[0]
+def _cauchy_green(stretch):
+    """C = stretch^2 I (1, 2, 2): an equibiaxial stretch of one triangle."""
+    return stretch**2 * jnp.eye(2, dtype=stretch.dtype)[None]
 
 
 @jax.jit
 def _curve(material, stretch):
     """(w'(lambda) (MPa), admissible) at each stretch (K,); material a pytree (traced)."""
-    eye = jnp.eye(2, dtype=stretch.dtype)[None]
-    dw = jax.vmap(jax.grad(lambda s: _energy(material, s)))(stretch)
-    ok = jax.vmap(lambda s: material.stretch_ok(s**2 * eye)[0])(stretch)
-    return dw, ok
+    geom = _one_triangle_geometry()
+    dw = jax.vmap(jax.grad(lambda s: material.energy_density(_cauchy_green(s), geom)[0]))
+    ok = jax.vmap(lambda s: material.stretch_ok(_cauchy_green(s))[0])
+    return dw(stretch), ok(stretch)
+
+
+def _positive(name, value, unit):
+    v = float(value)
+    if not (np.isfinite(v) and v > 0):
+        raise ParameterError(f"{name} must be a finite number > 0 {unit}; got {value!r}")
+    return v
 
 
 def balloon_pressure(material, thickness: float, stretch) -> np.ndarray:
     """P R0 (MPa mm = N/mm) of a spherical balloon of ``material`` at equibiaxial stretch
     ``stretch`` (array, > 1), thickness (mm); nan past the material's stretch limit."""
+    h = _positive("thickness", thickness, "mm")
     lam = np.atleast_1d(np.asarray(stretch, float))
     dw, ok = _curve(material, jnp.asarray(lam, dtype=jnp.float64))
-    out = float(thickness) * np.asarray(dw, float) / lam**2
+    out = h * np.asarray(dw, float) / lam**2
     return np.where(np.asarray(ok) & np.isfinite(out), out, np.nan)
 
 
@@ -85,15 +92,13 @@ class InflationLimit:
 
     def pressure(self, radius: float) -> float:
         """P_max (mmHg) of a balloon of reference radius ``radius`` (mm)."""
-        if not self.exists:
-            return float("inf")
-        return self.pr / float(radius) / MMHG
+        r = _positive("radius", radius, "mm")
+        return self.pr / r / MMHG if self.exists else float("inf")
 
     def radius(self, pressure: float) -> float:
         """The reference radius (mm) of the balloon whose limit is ``pressure`` (mmHg)."""
-        if not self.exists:
-            return float("nan")
-        return self.pr / (float(pressure) * MMHG)
+        p = _positive("pressure", pressure, "mmHg")
+        return self.pr / (p * MMHG) if self.exists else float("nan")
 
     def describe(self, pressure: float | None = None) -> str:
         """One line: the peak (or why there is none), and with ``pressure`` (mmHg, an
@@ -116,9 +121,7 @@ def inflation_limit(material, thickness: float, stretch_max: float = 8.0,
     (a grid of n points, refined by a bounded scalar search), or none.  ``material`` a
     validated `jaxvalve.mechanics.materials` model with concrete parameters."""
     from scipy.optimize import minimize_scalar
-    h = float(thickness)
-    if not (np.isfinite(h) and h > 0):
-        raise ParameterError(f"inflation_limit: thickness must be > 0 mm; got {thickness}")
+    h = _positive("thickness", thickness, "mm")
     if not (np.isfinite(stretch_max) and stretch_max > 1.0):
         raise ParameterError(f"inflation_limit: stretch_max must be > 1; got {stretch_max}")
     material.validate()

@@ -156,6 +156,8 @@ def test_limit_points_are_judged_by_the_inflation_analysis(tmp_path):
     assert not ok and "no inflation limit" in text
     ok, text = S.limit_analysis(piecewise)     # 71 mm: far larger than the root
     assert not ok and "outside" in text
+    ok, text = S.limit_analysis(rec("neo-hookean", 0.05, float("nan")))
+    assert not ok and "unknown" in text
     conv = dataclasses.replace(nh, result="successful", outcome="converged",
                                limit_pressure=float("nan"))
     recs = [nh, stvk, piecewise, conv]
