@@ -182,3 +182,29 @@ def test_simulate_starts_the_barrier_closures_from_the_valve_swung_shut_by_fire(
     for k, v in dict(h_CC=ref.h_cc, h_avr=ref.h_avr_valve, h=ref.h, h_c=ref.h_c).items():
         assert res.summary()[k] == pytest.approx(v, abs=0.01), k
     assert res.h_E == pytest.approx(measure(valve, closed[3.0][2], 0.5).h_e, abs=0.01)
+
+
+def test_a_newton_krylov_direction_is_cut_at_most_exact_halvings_times(valve, closed):
+    """`_line_search` on an uphill direction (against the force, at the closed valve):
+    a Newton-Krylov direction (judged by the residual) is given up after
+    ``exact_halvings`` trial states, the projected one (judged by the merit) only after
+    ``max_halvings``; the cap is what hands a poor Krylov step to the projected direction
+    instead of accepting a step of 1e-9 (module docstring)."""
+    from jaxvalve.solvers.barrier_newton import _line_search
+    x = closed[80.0][2]
+    model = _model(valve)
+    dhat = BarrierContact().dhat
+    pairs = build_pairs(valve.barrier_topology, x, dhat)
+    E, F, fp = model.evaluate(x, pairs)
+    scale = float(np.linalg.norm(fp[model.free]))
+    res = float(np.linalg.norm(F)) / scale
+    solver = BarrierNewton(rtol=1e-6, exact_halvings=3, max_halvings=7)
+    d = -F / float(np.max(np.linalg.norm(F, axis=1))) * 0.05     # uphill, 0.05 mm at most
+    slope = float(np.sum(F * d))
+    assert slope < 0
+    for exact, tries in ((True, 3), (False, 7)):
+        ok, alpha, *_, evals = _line_search(model, valve.barrier_topology, x, d, E, fp, res,
+                                            scale, slope, exact, dhat, solver)
+        assert not ok
+        assert evals == tries
+        assert alpha == pytest.approx(0.5 ** tries, rel=1e-12)
