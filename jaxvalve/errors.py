@@ -1,4 +1,6 @@
-"""Exception types. Every message names the offending parameter and its valid range."""
+"""Exception types, and the one check of a positive scalar. Every message names the
+offending parameter and its valid range."""
+import math
 
 
 class JaxvalveError(ValueError):
@@ -35,3 +37,15 @@ class ConvergenceError(RuntimeError):
 
 class NeighbourListOverflow(RuntimeError):
     """A fixed-capacity contact pair list overflowed; rebuild with a larger capacity."""
+
+
+def check_positive(name, value, unit="mm"):
+    """float(value), or `ParameterError` naming ``name`` unless it is a finite number > 0
+    (in ``unit``)."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ParameterError(f"{name} must be a number > 0 {unit}; got {value!r}") from None
+    if not math.isfinite(v) or v <= 0:
+        raise ParameterError(f"{name} must be finite and > 0 {unit}; got {v}")
+    return v

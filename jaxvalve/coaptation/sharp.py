@@ -14,11 +14,10 @@ import math
 
 import numpy as np
 
-from ..errors import MeshError
+from ..errors import MeshError, check_positive
 from .central_zone import central_candidates, central_index, free_edge_closest
 from .level_sets import chords, seg_fraction, tri_fraction, tri_moments
-from .topology import (check_frame, check_positive, check_x, max_edge_length, perp_basis,
-                     topology)
+from .topology import check_frame, check_x, max_edge_length, perp_basis, topology
 from .gaps import gap_field
 
 __all__ = ["CoaptationResult", "PairCurves", "coaptation_metrics", "level_values",

@@ -39,11 +39,10 @@ import jax
 import jax.numpy as jnp
 
 from ..contact.geometry import point_triangle_distance
-from ..errors import ParameterError
+from ..errors import ParameterError, check_positive
 from .central_zone import central_candidates, central_index, free_edge_closest
 from .level_sets import chords, seg_fraction, tri_fraction, tri_moments
-from .topology import (check_frame, check_positive, check_x, max_edge_length, perp_basis,
-                     topology)
+from .topology import check_frame, check_x, max_edge_length, perp_basis, topology
 from .gaps import candidate_pairs
 
 __all__ = ["SmoothPlan", "smooth_plan", "plan_valid", "smooth_metrics", "smooth_gap_field",

@@ -37,17 +37,6 @@ class Topology:
     triples: tuple
 
 
-def check_positive(name, value, unit="mm"):
-    """float(value), or ParameterError unless finite and > 0."""
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ParameterError(f"{name} must be a number > 0 {unit}; got {value!r}") from None
-    if not math.isfinite(v) or v <= 0:
-        raise ParameterError(f"{name} must be finite and > 0 {unit}; got {v}")
-    return v
-
-
 def check_x(x, n=None, name="x"):
     """(N, 3) float64 finite positions (mm)."""
     x = np.asarray(x, dtype=np.float64)

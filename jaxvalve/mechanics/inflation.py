@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..errors import ParameterError
+from ..errors import ParameterError, check_positive
 from .materials import SpringGeometry
 from .problem import MMHG
 
@@ -56,17 +56,10 @@ def _curve(material, stretch):
     return dw(stretch), ok(stretch)
 
 
-def _positive(name, value, unit):
-    v = float(value)
-    if not (np.isfinite(v) and v > 0):
-        raise ParameterError(f"{name} must be a finite number > 0 {unit}; got {value!r}")
-    return v
-
-
 def balloon_pressure(material, thickness: float, stretch) -> np.ndarray:
     """P R0 (MPa mm = N/mm) of a spherical balloon of ``material`` at equibiaxial stretch
     ``stretch`` (array, > 1), thickness (mm); nan past the material's stretch limit."""
-    h = _positive("thickness", thickness, "mm")
+    h = check_positive("thickness", thickness, "mm")
     lam = np.atleast_1d(np.asarray(stretch, float))
     dw, ok = _curve(material, jnp.asarray(lam, dtype=jnp.float64))
     out = h * np.asarray(dw, float) / lam**2
@@ -92,12 +85,12 @@ class InflationLimit:
 
     def pressure(self, radius: float) -> float:
         """P_max (mmHg) of a balloon of reference radius ``radius`` (mm)."""
-        r = _positive("radius", radius, "mm")
+        r = check_positive("radius", radius, "mm")
         return self.pr / r / MMHG if self.exists else float("inf")
 
     def radius(self, pressure: float) -> float:
         """The reference radius (mm) of the balloon whose limit is ``pressure`` (mmHg)."""
-        p = _positive("pressure", pressure, "mmHg")
+        p = check_positive("pressure", pressure, "mmHg")
         return self.pr / (p * MMHG) if self.exists else float("nan")
 
     def describe(self, pressure: float | None = None) -> str:
@@ -121,7 +114,7 @@ def inflation_limit(material, thickness: float, stretch_max: float = 8.0,
     (a grid of n points, refined by a bounded scalar search), or none.  ``material`` a
     validated `jaxvalve.mechanics.materials` model with concrete parameters."""
     from scipy.optimize import minimize_scalar
-    h = _positive("thickness", thickness, "mm")
+    h = check_positive("thickness", thickness, "mm")
     if not (np.isfinite(stretch_max) and stretch_max > 1.0):
         raise ParameterError(f"inflation_limit: stretch_max must be > 1; got {stretch_max}")
     material.validate()
