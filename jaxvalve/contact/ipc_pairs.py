@@ -48,7 +48,9 @@ class BarrierTopology:
     all three from `jaxvalve.contact.barrier.collision_weights`; pin (N,) int, the
     commissure point a sutured node is sewn to, or -1; fixed (N,) bool; self_contact:
     whether pairs of one leaflet that share no node are listed too, less those closer
-    than self_gap (mm) in the template ref3 (N, 3) (module docstring)."""
+    than self_gap (mm) in the template ref3 (N, 3) (module docstring); those, found once
+    (`_template_neighbours`), are kept as sorted keys: near_pt (node * M + triangle) and
+    near_ee (a * E + b, a < b, edge rows)."""
 
     triangles: np.ndarray
     edges: np.ndarray
@@ -64,6 +66,8 @@ class BarrierTopology:
     self_contact: bool = True
     self_gap: float = 0.5
     ref3: np.ndarray | None = None
+    near_pt: np.ndarray | None = None
+    near_ee: np.ndarray | None = None
 
     @property
     def n_nodes(self):
@@ -132,32 +136,65 @@ def barrier_topology(triangles, body, ref, fixed, x0, pin_tol=1e-9,
             p = max(pin[a], pin[b])
             p = k if p < 0 else p
             pin[a] = pin[b] = p
+    ref3 = np.pad(ref, ((0, 0), (0, 3 - ref.shape[1])))
+    near_pt, near_ee = _template_neighbours(tri, edges, body, ref3, float(self_gap))
     return BarrierTopology(triangles=tri, edges=edges, tri_edge=tri_edge, body=body,
                            tri_body=body[tri[:, 0]], edge_body=body[edges[:, 0]],
                            node_w=node_w, edge_w=edge_w, edge_len2=len2, pin=pin,
                            fixed=fixed, self_contact=bool(self_contact),
-                           self_gap=float(self_gap),
-                           ref3=np.pad(ref, ((0, 0), (0, 3 - ref.shape[1]))))
+                           self_gap=float(self_gap), ref3=ref3, near_pt=near_pt,
+                           near_ee=near_ee)
+
+
+def _template_neighbours(tri, edges, body, ref3, gap):
+    """Sorted int64 keys of the pairs of one body closer than gap (mm) in the template
+    ref3 (N, 3), shared nodes included (distance 0): node-triangle (node * M + t) and
+    edge-edge (a * E + b, a < b).  Such pairs are never listed (module docstring)."""
+    m, ne = len(tri), len(edges)
+    rt = ref3[tri]
+    cen = rt.mean(axis=1)
+    rad = float(np.sqrt(np.max(np.sum((rt - cen[:, None]) ** 2, axis=2))))
+    c = _ball_pairs(cen, ref3, gap + rad)
+    c = c[body[c[:, 0]] == body[tri[c[:, 1], 0]]]
+    d2 = point_triangle_distance2_np(ref3[c[:, 0]], rt[c[:, 1], 0], rt[c[:, 1], 1],
+                                     rt[c[:, 1], 2])
+    c = c[d2 < gap * gap]
+    near_pt = np.unique(c[:, 0] * m + c[:, 1])
+    a, b = ref3[edges[:, 0]], ref3[edges[:, 1]]
+    half = 0.5 * float(np.sqrt(np.max(np.sum((b - a) ** 2, axis=1))))
+    c = cKDTree(0.5 * (a + b)).query_pairs(gap + 2 * half, output_type="ndarray")
+    c = np.sort(c.reshape(-1, 2), axis=1)
+    c = c[body[edges[c[:, 0], 0]] == body[edges[c[:, 1], 0]]]
+    d2 = segment_distance2_np(a[c[:, 0]], b[c[:, 0]], a[c[:, 1]], b[c[:, 1]])
+    c = c[d2 < gap * gap]
+    return near_pt, np.unique(c[:, 0] * ne + c[:, 1])
+
+
+def _member(keys, table):
+    """(K,) True where keys (K,) int64 are in the sorted table."""
+    if len(table) == 0:
+        return np.zeros(len(keys), bool)
+    at = np.minimum(np.searchsorted(table, keys), len(table) - 1)
+    return table[at] == keys
 
 
 def _shares_pin(pin, a, b):
     """(K,) True where some pinned node of the rows a (K, i) is pinned with one of b (K, j)."""
     pa, pb = pin[a], pin[b]
-    eq = (pa[:, :, None] == pb[:, None, :]) & (pa[:, :, None] >= 0)
-    return np.any(eq, axis=(1, 2))
+    out = np.zeros(len(pa), bool)
+    i = np.flatnonzero(np.any(pa >= 0, axis=1) & np.any(pb >= 0, axis=1))
+    pa, pb = pa[i], pb[i]
+    out[i] = np.any((pa[:, :, None] == pb[:, None, :]) & (pa[:, :, None] >= 0), axis=(1, 2))
+    return out
 
 
 def _ball_pairs(tree_pts, query_pts, radius):
     """(K, 2) [query index, tree index] of points within radius."""
     if len(tree_pts) == 0 or len(query_pts) == 0:
         return np.zeros((0, 2), np.int64)
-    res = cKDTree(tree_pts).query_ball_point(query_pts, radius, return_sorted=False)
-    counts = np.fromiter((len(r) for r in res), np.int64, len(res))
-    if counts.sum() == 0:
-        return np.zeros((0, 2), np.int64)
-    q = np.repeat(np.arange(len(res)), counts)
-    t = np.concatenate([np.asarray(r, np.int64) for r in res if len(r)])
-    return np.column_stack([q, t])
+    m = cKDTree(query_pts).sparse_distance_matrix(cKDTree(tree_pts), radius,
+                                                  output_type="ndarray")
+    return np.column_stack([m["i"], m["j"]]).astype(np.int64)
 
 
 def pair_distances2(x, pt, ee):
@@ -188,7 +225,8 @@ def build_pairs(topo: BarrierTopology, x, cutoff: float, dx=None) -> BarrierPair
     tri, edges = topo.triangles, topo.edges
     xt = x[tri]
     cen = xt.mean(axis=1)
-    rad = np.sqrt(np.max(np.sum((xt - cen[:, None]) ** 2, axis=2)))
+    rad_t = np.sqrt(np.max(np.sum((xt - cen[:, None]) ** 2, axis=2), axis=1))   # (M,)
+    rad = float(rad_t.max())
     if dx is not None:
         dx = np.asarray(dx, float)
         reach = max(cutoff - 2.0 * float(np.max(np.linalg.norm(dx, axis=1))), 0.0)
@@ -215,16 +253,15 @@ def build_pairs(topo: BarrierTopology, x, cutoff: float, dx=None) -> BarrierPair
     node, t = cand[:, 0], cand[:, 1]
     other = topo.body[node] != topo.tri_body[t]
     lim = np.full(len(node), cutoff)
-    if topo.self_contact:            # within a body: no shared node, apart in the template
-        r = topo.ref3
-        own = ~other & np.all(tri[t] != node[:, None], axis=1)
-        i = np.flatnonzero(own)
+    if topo.self_contact:            # within a body: apart in the template
+        i = np.flatnonzero(~other)
+        i = i[~_member(node[i] * len(tri) + t[i], topo.near_pt)]
         lim[i] = limit(motion(np.arange(len(x))[:, None]), node[i], motion(tri), t[i])
-        i = i[np.linalg.norm(x[node[i]] - cen[t[i]], axis=1) - rad < lim[i]]
-        i = i[point_triangle_distance2_np(r[node[i]], r[tri[t[i], 0]], r[tri[t[i], 1]],
-                                          r[tri[t[i], 2]]) >= topo.self_gap ** 2]
         other[i] = True
     node, t, lim = node[other], t[other], lim[other]
+    # a node is no nearer a triangle than its distance to the centroid less the radius
+    near = np.linalg.norm(x[node] - cen[t], axis=1) - rad_t[t] < lim
+    node, t, lim = node[near], t[near], lim[near]
     rows = np.column_stack([node, tri[t]])
     keep = ~(topo.fixed[node] & np.all(topo.fixed[tri[t]], axis=1))
     keep &= ~_shares_pin(topo.pin, rows[:, :1], rows[:, 1:])
@@ -235,33 +272,38 @@ def build_pairs(topo: BarrierTopology, x, cutoff: float, dx=None) -> BarrierPair
     pt, pt_d2 = rows[sel], d2[sel]
     # edge-edge: each body's edges against the edges of the bodies after it
     mid = 0.5 * (x[edges[:, 0]] + x[edges[:, 1]])
-    half = 0.5 * np.sqrt(np.max(np.sum((x[edges[:, 1]] - x[edges[:, 0]]) ** 2, axis=1)))
-    out, lims = [], []
+    half_e = 0.5 * np.linalg.norm(x[edges[:, 1]] - x[edges[:, 0]], axis=1)      # (E,)
+    half = float(half_e.max())
+    out = []
     for b in np.unique(topo.edge_body):
         mine = np.flatnonzero(topo.edge_body == b)
         later = np.flatnonzero(topo.edge_body > b)
         c = _ball_pairs(mid[mine], mid[later], cutoff + 2 * half)
         out.append(np.column_stack([mine[c[:, 1]], later[c[:, 0]]]))
-        lims.append(np.full(len(c), cutoff))
-    if topo.self_contact:            # within each body: no shared node, apart in the template
-        c = np.concatenate([np.zeros((0, 2), np.int64)] + [
-            mine[cKDTree(mid[mine]).query_pairs(cutoff + 2 * half, output_type="ndarray")]
-            for mine in (np.flatnonzero(topo.edge_body == b)
-                         for b in np.unique(topo.edge_body))])
+    n_other = sum(len(c) for c in out)
+    if topo.self_contact:            # within each body: apart in the template (below)
+        out += [np.sort(mine[cKDTree(mid[mine]).query_pairs(cutoff + 2 * half,
+                                                            output_type="ndarray")], axis=1)
+                for mine in (np.flatnonzero(topo.edge_body == b)
+                             for b in np.unique(topo.edge_body))]
+    ea_eb = np.concatenate([np.zeros((0, 2), np.int64)] + out)
+    own = np.arange(len(ea_eb)) >= n_other
+    # two edges are no nearer than their midpoints' distance less their half-lengths
+    lb = (np.linalg.norm(mid[ea_eb[:, 0]] - mid[ea_eb[:, 1]], axis=1)
+          - half_e[ea_eb[:, 0]] - half_e[ea_eb[:, 1]])
+    near = lb < cutoff
+    ea_eb, own, lb = ea_eb[near], own[near], lb[near]
+    lim = np.full(len(ea_eb), cutoff)
+    if topo.self_contact:
+        i = np.flatnonzero(own)
+        apart = ~_member(ea_eb[i, 0] * len(edges) + ea_eb[i, 1], topo.near_ee)
+        near = np.ones(len(ea_eb), bool)
+        near[i[~apart]] = False
+        i = i[apart]
         me = motion(edges)
-        lim = limit(me, c[:, 0], me, c[:, 1])
-        near = np.linalg.norm(mid[c[:, 0]] - mid[c[:, 1]], axis=1) - 2 * half < lim
-        c, lim = c[near], lim[near]
-        apart = ~np.any(edges[c[:, 0]][:, :, None] == edges[c[:, 1]][:, None, :], axis=(1, 2))
-        c, lim = c[apart], lim[apart]
-        r = topo.ref3
-        apart = segment_distance2_np(r[edges[c[:, 0], 0]], r[edges[c[:, 0], 1]],
-                                     r[edges[c[:, 1], 0]], r[edges[c[:, 1], 1]]
-                                     ) >= topo.self_gap ** 2
-        out.append(c[apart])
-        lims.append(lim[apart])
-    ea_eb = np.concatenate(out) if out else np.zeros((0, 2), np.int64)
-    lim = np.concatenate(lims) if lims else np.zeros(0)
+        lim[i] = limit(me, ea_eb[i, 0], me, ea_eb[i, 1])
+        near &= lb < lim
+        ea_eb, lim = ea_eb[near], lim[near]
     rows = np.column_stack([edges[ea_eb[:, 0]], edges[ea_eb[:, 1]]])
     keep = ~np.all(topo.fixed[rows], axis=1)
     keep &= ~_shares_pin(topo.pin, rows[:, :2], rows[:, 2:])
