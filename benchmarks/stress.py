@@ -28,6 +28,9 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
+#: the hard cases beside the matrix (``--cases``)
+HARD_CASES = ("paper-template", "perturbed", "slivers", "penetration", "gent-limit",
+              "piecewise")
 
 
 def _parse(argv):
@@ -44,6 +47,8 @@ def _parse(argv):
     ap.add_argument("--rtol", type=float, default=1e-4)
     ap.add_argument("--no-special", action="store_true", help="only the matrix")
     ap.add_argument("--no-matrix", action="store_true", help="only the hard cases")
+    ap.add_argument("--cases", nargs="+", choices=HARD_CASES, default=list(HARD_CASES),
+                    help="the hard cases to run (default all)")
     ap.add_argument("--quick", action="store_true",
                     help="template b, E in {0.1, 1, 20}, P in {3, 80}, fewer hard cases")
     ap.add_argument("--out", default=str(HERE / "results"), help="results folder")
@@ -106,16 +111,19 @@ def main(argv=None):
               f"P={r.P:<4g} {r.extra:22s} steps={r.steps:<6d} res={r.residual:.1e} "
               f"cross={r.crossings} {r.wall_s:5.1f} s  {r.cause}", file=sys.stderr, flush=True)
 
-    records += S.run_invalid_templates(on_record=show)
+    if "paper-template" in cases:
+        records += S.run_invalid_templates(on_record=show)
     tpls = S.paper_templates()
     base = mesh_leaflet(tpls["b"][0], args.h)
     valves = {k: S.make_valve(tpls[k][0], args.h, S.mapped_mesh(base, tpls[k][0]))
               for k in args.templates}
     sb = tpls["b"][0]
-    special = {} if args.no_special else {
-        "perturbed": S.make_valve(sb, args.h, S.perturbed_mesh(base, 0.3, seed=0)),
-        "slivers": S.make_valve(sb, args.h, S.poor_mesh(base, 4, 3.0, seed=1)),
-    }
+    cases = set() if args.no_special else set(args.cases)
+    special = {}
+    if "perturbed" in cases:
+        special["perturbed"] = S.make_valve(sb, args.h, S.perturbed_mesh(base, 0.3, seed=0))
+    if "slivers" in cases:
+        special["slivers"] = S.make_valve(sb, args.h, S.poor_mesh(base, 4, 3.0, seed=1))
     e_special = (1.0,)
     p_special = tuple(args.P)
     for model in args.models:
@@ -131,12 +139,14 @@ def main(argv=None):
                 records += S.run_group(v, template="b", mesh=name, Es=e_special,
                                        Ps=p_special, case=name, on_record=show, **common)
             depths = (1.5,) if args.quick or prec == "float32" else (0.75, 2.5)
-            vb = valves.get("b") or S.make_valve(sb, args.h, base)
-            x_closed = S.closed_state(vb, P=80.0, **common)
-            for depth in depths:
-                records.append(S.run_penetration(vb, template="b", depth=depth, P=80.0,
-                                                 x_closed=x_closed, on_record=show, **common))
-            if model == "gent":
+            if "penetration" in cases:
+                vb = valves.get("b") or S.make_valve(sb, args.h, base)
+                x_closed = S.closed_state(vb, P=80.0, **common)
+                for depth in depths:
+                    records.append(S.run_penetration(vb, template="b", depth=depth, P=80.0,
+                                                     x_closed=x_closed, on_record=show,
+                                                     **common))
+            if model == "gent" and "gent-limit" in cases:
                 jms = (0.3,) if args.quick else (0.3, 0.1)
                 for jm in jms:
                     records += S.run_group(valves.get("b") or S.make_valve(sb, args.h, base),
@@ -144,7 +154,7 @@ def main(argv=None):
                                            Es=(0.1, 1.0), Ps=(3.0, 80.0, 200.0),
                                            case="gent-limit", extra=dict(Jm=jm),
                                            on_record=show, **common)
-            if model == "mass-spring":
+            if model == "mass-spring" and "piecewise" in cases:
                 sets = ((0.1, 1.0, 1.2),) if args.quick else (
                     (0.1, 1.0, 1.2), (0.05, 0.3, 1.2), (0.106, 0.569, 1.2), (0.18, 0.7, 1.2))
                 for e1, e2, e3 in sets:

@@ -48,7 +48,7 @@ from jaxvalve.errors import ConvergenceError, JaxvalveError
 from jaxvalve.geometry.leaflet_mesh import LeafletMesh, mesh_leaflet
 from jaxvalve.geometry.mesh import signed_areas_np, triangle_angles
 from jaxvalve.scene import MODELS, PRECISIONS, Scene
-from jaxvalve.valve.closure import close_load, close_valve
+from jaxvalve.valve.closure import close_valve
 from jaxvalve.geometry.template import PAPER_TEMPLATES, Template
 
 __all__ = ["RunRecord", "MATRIX_E", "MATRIX_P", "STRESS_H", "STRESS_MAX_STEPS",
@@ -494,10 +494,13 @@ def run_penetration(valve, *, template: str, model: str = "stvk", precision: str
         x0 = penetrated_start(valve, x_closed, depth)
         n0 = len(V.leaflet_crossings(valve, x0))
         rec.start = f"penetrated ({n0} crossing pairs)"
-        # the start is no equilibrium: p_from = 0, so a limit point can be claimed only
-        # from an equilibrium the continuation itself reaches
-        _judge(rec, valve, close_load(valve, scene, P, x0.astype(scene.dtype),
-                                      nbrs=_start_pairs(valve, scene)), scene)
+        # the start is no equilibrium: the driver ramps from p = 0, so a limit point can be
+        # claimed only from an equilibrium the continuation itself reaches; where the
+        # scene's law fails, the barrier path swings shut from the placement (the crossed
+        # start is no separated one: `closure.fall_back`)
+        _judge(rec, valve, close_valve(valve, scene, x0=x0.astype(scene.dtype),
+                                       pressures=(P,), nbrs=_start_pairs(valve, scene))[0],
+               scene)
     except Exception as e:  # noqa: BLE001
         _exception(rec, e)
     rec.wall_s = time.perf_counter() - t0

@@ -284,6 +284,35 @@ class WatchedRounds(CrossedOnFail):
                                 **kw)
 
 
+class LoggedStarts(CrossedOnFail):
+    """`CrossedOnFail` that logs the start x0 of every call beside (law, pressure)."""
+
+    def __init__(self, **kw):
+        super().__init__(**kw)
+        self.starts = []
+
+    def __call__(self, valve, material, p, *, x0, **kw):
+        self.starts.append(np.asarray(x0, float).copy())
+        return super().__call__(valve, material, p, x0=x0, **kw)
+
+
+def test_a_given_start_that_is_no_separated_start_gives_way_to_the_placement(
+        valve, monkeypatch):
+    """A closure from a given start whose leaflets cross (not finite here; the stress
+    suite pushes them through one another): the smooth law's closure fails, and the
+    barrier path's swing-shut starts from the placement, not from the given start, which
+    would leave the swing crossed and give the barrier no start."""
+    s = _stand_in(monkeypatch, LoggedStarts)(smooth_limit=1.0)
+    bad = np.asarray(valve.x_start, float).copy()
+    bad[0, 1] = np.nan
+    (closed,) = closure.close_valve(valve, FALLBACK, x0=bad, pressures=(80.0,))
+    assert s.calls == [("smooth", 80.0), ("smooth", 1.0), ("barrier", 80.0)]
+    assert closed.converged and closed.report.fallback
+    np.testing.assert_array_equal(s.starts[0], bad)
+    np.testing.assert_array_equal(s.starts[1], np.asarray(valve.x_start, float))
+    assert np.all(np.isfinite(s.starts[2]))
+
+
 def test_where_no_swing_converges_separated_the_barrier_starts_from_the_last_separated_fire_state(
         valve, monkeypatch):
     """Every swing ends unseparated: the watched FIRE swing at he_pressure, checked every

@@ -391,9 +391,10 @@ def fall_back(valve, scene: Scene, loads, failed: LoadSolve, *, material=None, x
     ``failed`` (a `LoadSolve` of ``loads``, the scene's own attempt) did not converge.
     The barrier closures start from the first load's state of ``loads`` where it is
     separated (`separated`: the smooth law's closure, converged or not, is the swing
-    shut that the barrier path needs), else from x0 (default the placement) swung shut
-    under the lighter loads of `swing_shut` (its first, ``he_pressure``, is the smooth
-    closure that failed).  A load after one that the
+    shut that the barrier path needs), else from x0 (default the placement; the
+    placement too where x0 is no separated start, e.g. leaflets pushed through one
+    another) swung shut under the lighter loads of `swing_shut` (its first,
+    ``he_pressure``, is the smooth closure that failed).  A load after one that the
     barrier path did not close is skipped (reported with the state before it, 0 steps).
     Each report names the failure (``fallback``) and includes the failed attempt's time."""
     why = f"{path_name(scene)} failed at {failed.report.pressure:g} mmHg: " \
@@ -410,6 +411,12 @@ def fall_back(valve, scene: Scene, loads, failed: LoadSolve, *, material=None, x
         say(f"  the {path_name(scene)} state at {loads[0].report.pressure:g} mmHg is no "
             "separated start (crossing, touching or folded): the barrier closures start "
             "from a swing-shut under a lighter load")
+        if x0 is not None and not separated(valve, x):
+            # a swing from a start whose leaflets cross ends crossed (FIRE on the penalty
+            # law settles the crossed sheets), and the barrier cannot start there
+            say("  the given start is no separated start either: the swing starts from "
+                "the placement")
+            x = np.asarray(valve.x_start, np.float64)
         x, p_swung, swing_s = _timed_swing(valve, barrier, x, material, say,
                                            SWING_FRACTIONS[1:])
     # a load after one that failed starts from no equilibrium: it is skipped (a Gent
