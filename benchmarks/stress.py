@@ -111,6 +111,7 @@ def main(argv=None):
               f"P={r.P:<4g} {r.extra:22s} steps={r.steps:<6d} res={r.residual:.1e} "
               f"cross={r.crossings} {r.wall_s:5.1f} s  {r.cause}", file=sys.stderr, flush=True)
 
+    cases = set() if args.no_special else set(args.cases)
     if "paper-template" in cases:
         records += S.run_invalid_templates(on_record=show)
     tpls = S.paper_templates()
@@ -118,7 +119,6 @@ def main(argv=None):
     valves = {k: S.make_valve(tpls[k][0], args.h, S.mapped_mesh(base, tpls[k][0]))
               for k in args.templates}
     sb = tpls["b"][0]
-    cases = set() if args.no_special else set(args.cases)
     special = {}
     if "perturbed" in cases:
         special["perturbed"] = S.make_valve(sb, args.h, S.perturbed_mesh(base, 0.3, seed=0))
