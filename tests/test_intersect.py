@@ -174,3 +174,25 @@ def test_bad_inputs():
                            np.zeros(len(x), int))
     with pytest.raises(MeshError, match="indices"):
         leaflets_intersect(x, tri + 100, np.zeros(len(x), int))
+
+
+def test_state_check_finds_a_leaflet_through_itself_on_any_law():
+    """Two triangles of one leaflet, sharing no node, the second piercing the first, no
+    edge folded (they share no edge) and both undeformed: `state_failure` reports
+    leaflets_cross with and without self-contact (a FIRE closure on the penalty law had
+    converged to such a state, found only by ipctk)."""
+    import types
+    from jaxvalve.valve.model import state_failure
+    x = np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0], [0.0, 2.0, 0.0],
+                  [0.5, 0.5, -1.0], [0.5, 0.5, 1.0], [0.5, 1.5, 0.0]])
+    tri = np.array([[0, 1, 2], [3, 4, 5]])
+    # the flat template: the same triangles laid apart in the plane (no strain)
+    ref = np.array([[0.0, 0.0], [2.0, 0.0], [0.0, 2.0], [5.0, -1.0], [5.0, 1.0], [6.0, 0.0]])
+    valve = types.SimpleNamespace(triangles=tri, body=np.zeros(6, int), ref=ref,
+                                  problem=types.SimpleNamespace(fixed=np.zeros(6, bool)))
+    for sc in (False, True):
+        assert state_failure(valve, x, self_contact=sc) == "leaflets_cross"
+    apart = x + np.array([0.0, 0.0, 0.0])
+    apart[3:, 0] += 3.0                     # moved clear of the first triangle
+    for sc in (False, True):
+        assert state_failure(valve, apart, self_contact=sc) is None

@@ -249,11 +249,15 @@ def state_failure(valve: Valve, x, *, self_contact: bool = False):
     test finds leaflets crossing), "inverted_triangles" (a triangle collapsed or turned
     over, `jaxvalve.valve.checks`), "nonfinite", or None when it passes.
 
+    The exact test also looks for triangles of one leaflet that share no node and
+    intersect (`intersect.self_intersections`), whatever the law: the penalty law keeps
+    leaflets apart but not a leaflet off itself, and a FIRE closure of template (c) of the
+    stress suite (neo-Hookean, 1 MPa, 3 mmHg) converged to a leaflet folded through
+    itself with no edge past the fold bound, which only ipctk had found.
     self_contact: x comes from a law that keeps each leaflet off itself (the barrier's
     self-contact, CCD on every step).  A sharp crease (two triangles' normals more than
     `checks.FOLD_DEG` apart) is then a fold held open, not a triangle turned over, and
-    is not a failure; instead the exact test looks for triangles of one leaflet that
-    share no node and intersect (`intersect.self_intersections`)."""
+    is not a failure."""
     from .checks import FOLD_DEG, triangle_checks
     from .intersect import self_intersections
     x = np.asarray(x, np.float64)
@@ -261,7 +265,7 @@ def state_failure(valve: Valve, x, *, self_contact: bool = False):
         return "nonfinite"
     if len(leaflet_crossings(valve, x)):
         return "leaflets_cross"
-    if self_contact and len(self_intersections(x, valve.triangles, valve.body)):
+    if len(self_intersections(x, valve.triangles, valve.body)):
         return "leaflets_cross"
     rep = triangle_checks(valve.ref, valve.triangles, x,
                           fold_deg=180.0 if self_contact else FOLD_DEG)
