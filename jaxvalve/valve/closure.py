@@ -373,19 +373,14 @@ def _falls_back(scene: Scene, loads) -> LoadSolve | None:
 
 
 def separated(valve, x) -> bool:
-    """x is a start the barrier closures can move from: finite, no collapsed or folded
-    triangle (`checks.triangle_checks`: the barrier solver's steps keep every edge below
-    the fold limit), no crossing leaflets and no leaflet through itself (the barrier's
-    pairs see distances, not an edge that already passes through a face, so a crossing
-    at the start would stay), every barrier pair apart."""
-    from .checks import triangle_checks
-    from .intersect import self_intersections
+    """x is a start the barrier closures can move from: it passes the state check
+    (`V.state_failure`: finite, no collapsed triangle and no edge past the fold limit,
+    which the barrier solver's steps keep, no leaflets crossing and no leaflet through
+    itself: the barrier's pairs see distances, not an edge that already passes through a
+    face, so a crossing at the start would stay), and every barrier pair is apart."""
     from ..contact.ipc_pairs import build_pairs
     x = np.asarray(x, np.float64)
-    return bool(np.all(np.isfinite(x))
-                and triangle_checks(valve.ref, valve.triangles, x).ok
-                and not len(V.leaflet_crossings(valve, x))
-                and not len(self_intersections(x, valve.triangles, valve.body))
+    return bool(V.state_failure(valve, x) is None
                 and build_pairs(valve.barrier_topology, x, 1.0).min_distance > 0)
 
 
