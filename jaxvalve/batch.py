@@ -62,7 +62,7 @@ from .scene import Scene
 from .valve import model as V
 from .simulation import _quiet, build_scene_valve, measure
 from .timing import compile_timer
-from .valve.closure import close_valve
+from .valve.closure import admissible_start, close_valve
 from .solvers import RESULTS, Solution, Stats, iterate
 from .solvers.base import relative_residual
 
@@ -491,6 +491,10 @@ def simulate_batch(scene: Scene | None = None, materials=None, *, valve=None,
     base = valve.params(members[0], scene.he_pressure, scene.contact_law(), scene.thickness,
                         np.deg2rad(scene.fibre_angle), scene.bending_law())
     validate_params(base)
+    for mat in members:
+        # a member past its stretch limit even at rest is bad input (ParameterError),
+        # refused before the batched program runs
+        admissible_start(valve, scene, np.asarray(valve.x_start), material=mat)
     # strong float64 leaves, as `equilibrium.solve`: one compiled function for any value
     base = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype=x0.dtype), base)
     stacked = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype=x0.dtype), stacked)

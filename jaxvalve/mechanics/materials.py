@@ -69,6 +69,12 @@ class Material:
         """The same model at its largest tangent modulus; used only for stiffness bounds."""
         return self
 
+    def limit_free(self):
+        """The nearest model without a stretch limit (itself where it has none); the
+        closure driver settles a start past the limit with it
+        (`jaxvalve.valve.closure.admissible_start`)."""
+        return self
+
     def stretch_margin(self, C):
         """Float (M,): positive where the state is admissible for this model (finite
         energy); here det C (a collapsed or inverted triangle has none)."""
@@ -171,6 +177,11 @@ class Gent(Material):
         arg, ok = self._arg(C)
         arg_s, ok2 = _safe_positive(arg)
         return jnp.where(ok & ok2, -0.5 * self.Jm * self.mu * jnp.log(arg_s), jnp.inf)
+
+    def limit_free(self):
+        """Neo-Hookean with the same mu: Gent's limit Jm -> infinity, and its small-strain
+        behaviour (eq. 3.2 expands to eq. 3.1 in (I1 + 1/I2 - 3)/Jm)."""
+        return NeoHookean(mu=self.mu)
 
     def stretch_margin(self, C):
         """min(det C, 1 - (I1 + 1/I2 - 3)/Jm): positive inside the stretch limit."""

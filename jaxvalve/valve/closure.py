@@ -15,8 +15,10 @@ optimiser's `Evaluator` and the stress suite.
   pair list, for the adjoint) and the ramp.
 * `close_valve(valve, scene)`: the scene's loads in turn (``he_pressure``, then
   ``pressure``), each from the state of the one before; on the barrier path the valve is
-  first swung shut (`swing_shut`).  A load above a limit point, or after a state that is
-  not finite, is not solved: its report repeats the earlier outcome with 0 steps.
+  first swung shut (`swing_shut`); a start past a Gent material's stretch limit is first
+  settled at 0 mmHg under the limit-free law (`admissible_start`).  A load above a limit
+  point, or after a state that is not finite, is not solved: its report repeats the
+  earlier outcome with 0 steps.
   **Fallback** (``scene.fallback``, on by default): where a load on the smooth penalty
   law fails for any reason but a limit point (a step cap, crossed leaflets, a folded
   triangle, a state that is not finite ...), the valve is closed again, every load, on
@@ -40,14 +42,14 @@ import numpy as np
 
 from . import model as V
 from ..solvers.continuation import Ramp, RampResult, cut_on, ramp
-from ..errors import ConvergenceError
+from ..errors import ConvergenceError, ParameterError
 from ..scene import Scene
 from ..solvers import RESULTS
 from ..solvers.stall import stopped_cause
 from ..timing import compile_timer
 
 __all__ = ["SolveReport", "LoadSolve", "close_load", "close_valve", "swing_shut",
-           "watched_swing", "fall_back", "separated", "path_name"]
+           "watched_swing", "fall_back", "separated", "path_name", "admissible_start"]
 
 
 def _quiet(msg):
@@ -440,12 +442,54 @@ def fall_back(valve, scene: Scene, loads, failed: LoadSolve, *, material=None, x
     return tuple(merged)
 
 
+def _worst_margin(valve, material, x) -> float:
+    """The smallest `Material.stretch_margin` over the triangles of x (N, 3) mm: positive
+    where the law's energy is finite everywhere."""
+    from ..geometry.mesh import cauchy_green_np
+    C = cauchy_green_np(x, valve.triangles, valve.ref)
+    return float(np.min(np.asarray(material.stretch_margin(C))))
+
+
+def admissible_start(valve, scene: Scene, x, *, material=None, say=_quiet):
+    """A start inside the material's stretch limit: x itself where the law's energy is
+    finite there (every law without a limit; Gent where no triangle of x reaches Jm),
+    else the placement settled at P = 0 (`model.settle`) under the law's limit-free
+    relative (`Material.limit_free`: neo-Hookean with Gent's mu).  The placement is a
+    harmonic surface, not an equilibrium: template (b) of the stress suite places a
+    triangle at I1 + 1/I2 - 3 = 0.44, and settled it is at 0.023, so a Gent valve with
+    Jm = 0.1 or 0.3 has equilibria that a solve from the placement never reaches (its
+    first step is past the limit).  Raises `ParameterError` naming Jm and its range where
+    even the settled leaflets pass the limit: no state of the sewn leaflets lies inside it.
+    Returns x, or the settled state (N, 3) in x's dtype."""
+    material = scene.material() if material is None else material
+    free = material.limit_free()
+    if free is material or _worst_margin(valve, material, x) > 0:
+        return x
+    from .checks import gent_invariant
+    g_x = float(np.max(gent_invariant(valve.ref, valve.triangles, x)))
+    say(f"the start passes the {material.name} stretch limit (max (I1 + 1/I2 - 3) = "
+        f"{g_x:.3g} >= Jm = {float(material.Jm):g}): settling the placement at 0 mmHg "
+        f"under the limit-free law ({free.name}, the same mu)")
+    settled, sol = V.settle(valve, free, thickness=scene.thickness)
+    y = np.asarray(settled.x_start, np.float64)
+    g_y = float(np.max(gent_invariant(valve.ref, valve.triangles, y)))
+    if not _worst_margin(valve, material, y) > 0:
+        raise ParameterError(
+            f"Gent Jm = {float(material.Jm):g} lies below the stretch that the sewn leaflets "
+            f"carry at rest: settled without pressure under the limit-free law ({free.name},"
+            f" the same mu) their most stretched triangle has I1 + 1/I2 - 3 = {g_y:.3g}, so "
+            f"for this template and root Jm must exceed {g_y:.3g}")
+    say(f"  settled: {sol.describe()}; max (I1 + 1/I2 - 3) = {g_y:.3g}")
+    return y.astype(np.asarray(x).dtype)
+
+
 def close_valve(valve, scene: Scene, *, material=None, x0=None, pressures=None, nbrs=None,
                 first=(), done=(), throw: bool = False,
                 say: Callable[[str], None] = _quiet) -> tuple:
     """The valve closed under ``pressures`` mmHg in turn (default the scene's
     (he_pressure, pressure)), each load from the state of the one before (`close_load`;
-    the first from x0, default ``valve.x_start``, swung shut first on the barrier path),
+    the first from x0, default ``valve.x_start``, settled first where it passes the
+    material's stretch limit (`admissible_start`), swung shut first on the barrier path),
     with the barrier path as the fallback where the scene's fails (module docstring).
     Returns one `LoadSolve` a load.
 
@@ -459,6 +503,10 @@ def close_valve(valve, scene: Scene, *, material=None, x0=None, pressures=None, 
                  else tuple(float(p) for p in pressures))
     material = scene.material() if material is None else material
     x = np.asarray(valve.x_start if x0 is None else x0, scene.dtype)
+    if not done:
+        y = admissible_start(valve, scene, x, material=material, say=say)
+        if y is not x:          # the batched first attempts started past the limit
+            x, x0, first = y, y, ()
     out = _in_turn(valve, scene, material, x, pressures, nbrs, first, tuple(done), False,
                    say, stop=_may_fall_back(scene))
     failed = _falls_back(scene, out)
