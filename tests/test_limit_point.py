@@ -202,6 +202,37 @@ def test_a_solver_may_declare_its_step_cap_a_load_step_too_long():
     assert out.status == "max_steps_reached" and s.tried == [80.0]
 
 
+def test_a_barrier_step_that_lands_on_a_collapsed_triangle_is_cut():
+    """A barrier closure whose state the valve's check rejects for a collapsed triangle
+    (`inverted_triangles`) took too long a load step: the ramp retries it at half the
+    increment, as after a step cap; a crossing (which the barrier rules out by
+    construction, so its cause lies elsewhere) still ends the ramp."""
+    import types
+    from jaxvalve.solvers import BarrierNewton
+    from jaxvalve.solvers.continuation import cut_on
+
+    class Rejected(_Stalls):
+        state = "inverted_triangles"
+
+        def __call__(self, p, x):
+            sol = super().__call__(p, x)
+            if sol.converged:
+                return sol
+            # the solver met rtol, at a state the check rejects
+            return types.SimpleNamespace(x=np.array([p]), converged=False,
+                                         status=self.state, stats=sol.stats)
+
+    assert "inverted_triangles" in cut_on(BarrierNewton())
+    s = Rejected(reach=25.0)
+    out = ramp(s, np.array([3.0]), 80.0, 3.0, cut=cut_on(BarrierNewton()))
+    assert out.converged and s.tried == [80.0, 41.5, 22.25, 41.5, 80.0, 60.75, 80.0]
+    assert float(out.x[0]) == 80.0
+    s = Rejected(reach=25.0)
+    s.state = "leaflets_cross"
+    out = ramp(s, np.array([3.0]), 80.0, 3.0, cut=cut_on(BarrierNewton()))
+    assert out.status == "leaflets_cross" and s.tried == [80.0]
+
+
 def test_a_ramp_ends_when_its_step_budget_is_spent():
     """`Ramp.max_steps` bounds the solver steps of a ramp that creeps up (each solve 10
     steps here): it ends after the first failed solve past the budget, with that failure
