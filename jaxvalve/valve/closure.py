@@ -459,7 +459,8 @@ def admissible_start(valve, scene: Scene, x, *, material=None, say=_quiet):
     triangle at I1 + 1/I2 - 3 = 0.44, and settled it is at 0.023, so a Gent valve with
     Jm = 0.1 or 0.3 has equilibria that a solve from the placement never reaches (its
     first step is past the limit).  Raises `ParameterError` naming Jm and its range where
-    even the settled leaflets pass the limit: no state of the sewn leaflets lies inside it.
+    even the settled leaflets pass the limit: the leaflets at rest already carry more
+    stretch than Jm allows.
     Returns x, or the settled state (N, 3) in x's dtype."""
     material = scene.material() if material is None else material
     free = material.limit_free()
