@@ -491,10 +491,12 @@ def simulate_batch(scene: Scene | None = None, materials=None, *, valve=None,
     base = valve.params(members[0], scene.he_pressure, scene.contact_law(), scene.thickness,
                         np.deg2rad(scene.fibre_angle), scene.bending_law())
     validate_params(base)
-    for mat in members:
-        # a member past its stretch limit even at rest is bad input (ParameterError),
-        # refused before the batched program runs
-        admissible_start(valve, scene, np.asarray(valve.x_start), material=mat)
+    # each member's start inside its stretch limit (`admissible_start`), found before the
+    # batched program runs, so that a member past the limit even at rest is refused
+    # (ParameterError) before any expensive work; a settled start is handed to the
+    # driver, whose batched first attempts (from the placement) it then skips
+    placed = np.asarray(valve.x_start)
+    starts = [admissible_start(valve, scene, placed, material=mat) for mat in members]
     # strong float64 leaves, as `equilibrium.solve`: one compiled function for any value
     base = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype=x0.dtype), base)
     stacked = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype=x0.dtype), stacked)
@@ -526,8 +528,10 @@ def simulate_batch(scene: Scene | None = None, materials=None, *, valve=None,
     for i, mat in enumerate(members):
         # the batched program's attempts, finished by the one closure driver: the state
         # check, continuation where a member ran away, the stall probe at a step cap
-        first = () if stages is None else _first_attempts(valve, stages, i)
+        settled = starts[i] is not placed
+        first = () if stages is None or settled else _first_attempts(valve, stages, i)
         loads = close_valve(valve, scene, material=mat, first=first,
+                            x0=starts[i] if settled else None,
                             say=say if stages is None else _member_say(say, i))
         # the member's own solves (continuation, barrier closures) count as solve time;
         # its state check and stall probe, as the metrics, as host time

@@ -96,3 +96,18 @@ def test_a_batch_member_past_its_limit_at_rest_is_refused_before_the_batched_pro
     with pytest.raises(ParameterError, match="Jm"):
         simulate_batch(SCENE, members, valve=valve)
     assert ran == []
+
+
+def test_a_batch_settles_a_member_past_its_limit_once_and_closes_it(valve, stretch,
+                                                                   monkeypatch):
+    from jaxvalve import simulate_batch
+    settles = []
+    real = V.settle
+    monkeypatch.setattr(closure.V, "settle",
+                        lambda *a, **kw: settles.append(1) or real(*a, **kw))
+    members = [M.Gent(mu=1.0 / 3.0, Jm=2.3), M.Gent(mu=1.0 / 3.0, Jm=0.1)]
+    res = simulate_batch(SCENE, members, valve=valve)
+    assert len(settles) == 1                  # the second member, once
+    for m in res.members:
+        assert m.converged, m.describe() if hasattr(m, "describe") else m
+        assert gent_invariant(valve.ref, valve.triangles, m.x).max() < m.material.Jm
