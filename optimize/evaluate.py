@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxvalve.solvers import equilibrium
-from jaxvalve.valve.closure import close_load, separated, swing_shut
+from jaxvalve.valve.closure import admissible_start, close_load, separated, swing_shut
 from jaxvalve import valve as V
 from jaxvalve.coaptation import annulus_level
 from jaxvalve.coaptation.smooth import smooth_metrics, smooth_plan
@@ -227,18 +227,27 @@ class Evaluator:
                 # state moved to another template may touch
                 seed = self.valve.x_start
                 x0 = self._x_fixed_jit(th, jnp.asarray(seed))
-            if self.scene.contact == "barrier" and seed is self.valve.x_start:
+            placed = seed is self.valve.x_start
+            mat = self.material if material is None else material
+            if mat.limit_free() is not mat:
+                # a start past the law's stretch limit (Gent): the design's placement
+                # settled at 0 mmHg, as the closure driver starts `simulate`
+                y = admissible_start(self.design_valve(rab), self.scene, np.asarray(x0),
+                                     material=mat, say=self.say)
+                if not np.array_equal(y, np.asarray(x0)):
+                    x0, placed = jnp.asarray(y), True
+            if self.scene.contact == "barrier" and placed:
                 # from the placement, swung shut first, as `simulate` does: from the open
                 # valve the 80 mmHg closure at (12.5, 7.5, 15.5) missed rtol 1e-9 within
                 # its step budget; swung shut, 11 and 46 Newton steps
                 x0, _ = swing_shut(self.valve, self.scene, x0, ref=self._ref_jit(th),
-                                   material=self.material if material is None else material)
+                                   material=mat)
             # the one closure driver, with the mapped reference: the state check
             # (crossed leaflets, folds), continuation where a solve runs away, the stall
             # probe for a solve stopped at its step cap
             ls = close_load(self.valve, self.scene, self.pressure[load], x0, p_from=p_from,
-                            material=self.material if material is None else material,
-                            ref=self._ref_jit(th), whole_lists=self.whole_lists)
+                            material=mat, ref=self._ref_jit(th),
+                            whole_lists=self.whole_lists)
             sol, rep = ls.solution, ls.report
             x = np.asarray(sol.x)
             ok = rep.converged and bool(np.all(np.isfinite(x)))
@@ -282,12 +291,7 @@ class Evaluator:
             raise ParameterError("this evaluation belongs to an earlier mesh generation")
         th = self.theta(ev.rab)
         tpl = Template(*np.asarray(ev.rab, float), self.scene.alpha)
-        ref = np.asarray(self._ref_jit(th))          # the mapped leaflet, three times
-        lm = dataclasses.replace(self.valve.leaflet, template=tpl,
-                                 points=ref[: self.valve.nodes_per_leaflet])
-        x_fix = np.asarray(self._x_fixed_jit(th))
-        valve = dataclasses.replace(self.valve, leaflet=lm, ref=ref,
-                                    x_placed=x_fix, x_start=x_fix)
+        valve = self.design_valve(ev.rab)
         xs, reports = {}, {}
         for s in ev.solves:
             xs[s["load"]] = np.asarray(ev.states[s["load"]][1].x)
@@ -312,6 +316,18 @@ class Evaluator:
             scene=self.scene.replace(r=tpl.r, a=tpl.a, b=tpl.b), valve=valve, x=xs["closed"],
             x_he=xs["he"], metrics=m, metrics_he=m_he, solves=(reports["he"], reports["closed"]),
             timings=dict(setup=0.0, metrics=t_m))
+
+    def design_valve(self, rab):
+        """The valve of template (r, a, b) mm on this generation's mesh: the mapped
+        leaflet (reference, three times) and its placement."""
+        th = self.theta(rab)
+        tpl = Template(*np.asarray(rab, float), self.scene.alpha)
+        ref = np.asarray(self._ref_jit(th))
+        lm = dataclasses.replace(self.valve.leaflet, template=tpl,
+                                 points=ref[: self.valve.nodes_per_leaflet])
+        x_fix = np.asarray(self._x_fixed_jit(th))
+        return dataclasses.replace(self.valve, leaflet=lm, ref=ref, x_placed=x_fix,
+                                   x_start=x_fix)
 
     @property
     def area_ref(self):

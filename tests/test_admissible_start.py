@@ -111,3 +111,24 @@ def test_a_batch_settles_a_member_past_its_limit_once_and_closes_it(valve, stret
     for m in res.members:
         assert m.converged, m.describe() if hasattr(m, "describe") else m
         assert gent_invariant(valve.ref, valve.triangles, m.x).max() < m.material.Jm
+
+
+def test_the_optimiser_settles_a_design_past_its_limit_and_closes_it(stretch, monkeypatch):
+    """The optimiser's evaluator starts each design where the driver starts `simulate`:
+    a Gent design whose placement passes Jm is settled at 0 mmHg on its own (mapped)
+    reference first; from the placement its closure fails at the stretch limit.  On the
+    barrier path (the smooth law lets these h = 3 mm leaflets cross; `simulate` falls
+    back to the barrier there, the evaluator does not)."""
+    import optimize.evaluate as E
+    from optimize import Evaluator, Objective, Target
+    scene = SCENE.replace(Jm=0.1, contact="barrier", solver="newton")
+    ev = Evaluator(scene, Objective(targets=(Target("h_E", value=15.0),)))
+    rab = (scene.r, scene.a, scene.b)
+    good = ev.forward(rab)
+    assert good.converged, good.reason
+    x = np.asarray(good.states["he"][1].x)
+    assert gent_invariant(ev.design_valve(rab).ref, ev.valve.triangles, x).max() < 0.1
+    monkeypatch.setattr(E, "admissible_start", lambda v, s, x, **kw: x)
+    bad = ev.forward(rab)
+    assert not bad.converged
+    assert bad.solves[-1]["result"] == RESULTS.stretch_limit.name
