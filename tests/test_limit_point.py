@@ -166,6 +166,16 @@ def test_a_stagnated_step_is_retried_at_half_the_increment_then_at_its_own_press
     assert [h[1] for h in out.history].count("stagnation") == 3
 
 
+def test_a_ramp_out_of_solves_after_an_equilibrium_reports_the_failure_before_it():
+    """Out of solves just after an equilibrium below the target, the ramp reports the
+    failure that made it step (no runaway happened, so never `escaped`)."""
+    s = _Stalls(reach=25.0)
+    out = ramp(s, np.array([3.0]), 80.0, 3.0, Ramp(max_solves=4))
+    assert s.tried == [80.0, 41.5, 22.25, 41.5]
+    assert out.status == "stagnation" and out.pressure == 41.5 and out.p_escape is None
+    assert out.failure is not None and not out.failure.converged
+
+
 def test_a_ramp_that_stalls_is_reported_as_stagnation_never_as_a_limit_point():
     # increments of 0.1 converge: the ramp creeps up and runs out of solves
     s = _Stalls(reach=0.1)

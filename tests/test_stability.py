@@ -61,3 +61,24 @@ def test_the_solve_pushes_off_an_unstable_equilibrium_to_a_stable_one():
     sol0, log0 = solve_barrier(prob, params, x, BarrierNewton(), topo)
     assert int(sol0.result) == RESULTS.successful and not log0.stability
     assert np.abs(np.asarray(sol0.x)[:, 2]).max() == 0.0
+
+
+def test_a_solve_whose_best_residual_stops_halving_ends_at_its_patience():
+    """Patience: a solve below exact_below whose best residual has not halved for
+    `patience` steps ends as `stagnation` (continuation then cuts the load step), not at
+    its step cap.  Here the inflated disk reaches the round-off floor (3.5e-14), below
+    which rtol = 1e-16 cannot be met: with patience 0 it runs to its cap."""
+    prob, params, topo, x = _disk(0.98)
+    params = params.replace(pressure=1e-3)
+    capped, _ = solve_barrier(prob, params, x,
+                              BarrierNewton(rtol=1e-16, max_steps=60, patience=0), topo)
+    assert int(capped.result) == RESULTS.max_steps_reached
+    sol, log = solve_barrier(prob, params, x,
+                             BarrierNewton(rtol=1e-16, max_steps=60, patience=5), topo)
+    assert int(sol.result) == RESULTS.stagnation, sol.describe()
+    n = int(sol.stats.steps)
+    assert n < 30
+    r = np.asarray(log.residual)
+    assert r.min() < 1e-12 and r[-6:].min() > 0.5 * r[:-6].min()   # no halving in 5+1
+    assert float(sol.stats.residual) <= 2.0 * float(capped.stats.residual)
+    assert "stagnation" in BarrierNewton().cut_on

@@ -47,8 +47,8 @@ _MESSAGES = {
     RESULTS.stretch_limit: "a triangle passed the material's stretch limit (Gent) or collapsed",
     RESULTS.neighbour_overflow: "the contact pair list overflowed its capacity",
     RESULTS.stagnation: ("the solver stagnated: the residual stopped falling (Newton: no "
-                         "step reduced it; FIRE: its best did not halve within its "
-                         "patience)"),
+                         "step reduced it, or its best did not halve within its patience; "
+                         "FIRE: its best did not halve within its patience)"),
     RESULTS.escaped: ("a node moved farther from its start than the structure's diameter: "
                       "no equilibrium near the start (a load past the structure's limit "
                       "point, or an unrestrained rigid-body drift)"),

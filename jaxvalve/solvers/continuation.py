@@ -196,11 +196,14 @@ def ramp(solve: Callable, x0, p_target: float, p_start: float = 0.0,
         if (not sol.converged and settings.max_steps is not None and p_bad is None
                 and steps >= settings.max_steps):       # the budget is spent
             return RampResult(status, p_ok, p_bad, x_ok, sol_ok, sol, tuple(history), steps)
+        if not sol.converged:
+            sol_fail = sol
         p = _next_pressure(p_ok, p_bad, p_stall, p_target, sol.converged)
     # out of solves (or a runaway down to the start): the last solve's failure, a runaway
     # or a stagnation (a converged solve at the target returns above)
-    last = RESULTS.escaped.name if sol.converged else sol.status
-    return RampResult(last, p_ok, p_bad, x_ok, sol_ok, sol, tuple(history), steps)
+    # out of solves just after an equilibrium: the failure that made the ramp step
+    last = sol_fail if sol.converged else sol
+    return RampResult(last.status, p_ok, p_bad, x_ok, sol_ok, last, tuple(history), steps)
 
 
 def _next_pressure(p_ok, p_bad, p_stall, p_target, converged):
