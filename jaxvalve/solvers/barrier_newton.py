@@ -543,7 +543,7 @@ def solve_barrier(problem, params, x0, solver: BarrierNewton, topo: BarrierTopol
             break
         # patience, once the solve has reached the Newton-Krylov regime (below
         # exact_below): above it the first steps swing the leaflets (from the open
-        # placement at 3 mmHg: 41 steps at 0.19 without a halving, then converged)
+        # placement at 3 mmHg: 41 steps at 0.19 without a halving, then converged).
         # A solve that has moved a node more than dx_max since then is drifting (past a
         # limit point, where the runaway test must see it go), not cycling: its clock
         # restarts.  (Table 5's mass-spring valve at E = 0.1 MPa, h = 0.88 mm: without

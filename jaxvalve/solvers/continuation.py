@@ -164,6 +164,7 @@ def ramp(solve: Callable, x0, p_target: float, p_start: float = 0.0,
     p_bad = None      # the lowest pressure at which a solve ran away
     p_stall = None    # the pressure of the last stagnated solve not yet passed
     history, steps = [], 0
+    sol_fail = None   # the last failed solve
     p = p_target
     for _ in range(settings.max_solves):
         sol = solve(p, x_ok)
@@ -200,8 +201,8 @@ def ramp(solve: Callable, x0, p_target: float, p_start: float = 0.0,
             sol_fail = sol
         p = _next_pressure(p_ok, p_bad, p_stall, p_target, sol.converged)
     # out of solves (or a runaway down to the start): the last solve's failure, a runaway
-    # or a stagnation (a converged solve at the target returns above)
-    # out of solves just after an equilibrium: the failure that made the ramp step
+    # or a stagnation (a converged solve at the target returns above); out of solves just
+    # after an equilibrium (which a failure must have preceded): the last failure
     last = sol_fail if sol.converged else sol
     return RampResult(last.status, p_ok, p_bad, x_ok, sol_ok, last, tuple(history), steps)
 
