@@ -232,9 +232,10 @@ class Evaluator:
             if mat.limit_free() is not mat:
                 # a start past the law's stretch limit (Gent): the design's placement
                 # settled at 0 mmHg, as the closure driver starts `simulate`
-                y = admissible_start(self.design_valve(rab), self.scene, np.asarray(x0),
+                x0n = np.asarray(x0)
+                y = admissible_start(self.design_valve(rab), self.scene, x0n,
                                      material=mat, say=self.say)
-                if not np.array_equal(y, np.asarray(x0)):
+                if y is not x0n:                    # settled: x0n passed the limit
                     x0, placed = jnp.asarray(y), True
             if self.scene.contact == "barrier" and placed:
                 # from the placement, swung shut first, as `simulate` does: from the open

@@ -111,9 +111,9 @@ class BarrierNewton:
     #: the ones that converge halve their best residual at least every 28 steps (7
     #: solves of its continuation); stopped at 40 steps without a halving, the three
     #: E1 = 0.05 MPa cells closed in 750, 554 and 800 steps instead of 978, 747 and 831.
-    #: Opt-in (0, the default: no patience) until its cost on the test suite is known: a
-    #: CI run with 40 had a third of the tests done after 16 minutes (the whole suite
-    #: took 17 without it)
+    #: Opt-in (0, the default: no patience) until the test suite has run with it: the
+    #: CI runs tried with 40 and with 0 were both too slow to finish (a third done after
+    #: 16 minutes each), so they did not show what it costs
     patience: int = 0
     #: failures after which continuation in pressure cuts the load step
     #: (`jaxvalve.solvers.continuation.cut_on`): Newton converges in tens of iterations from a
