@@ -62,27 +62,29 @@ def _load_stress_suite():
 
 _load_stress_suite()
 
-#: Test files by their measured time in `.ci/run` (seconds of one xdist worker, session
-#: 17, `--durations`), longest first.  With `--dist loadfile` the workers take whole files
-#: from a queue; xdist's default queue puts the files with the most tests first, which left
-#: the long files with few tests (the closure gradients, the notebooks) for the end, where
-#: one worker ran them alone.  Longest first (LPT) keeps both workers busy to the end.
-#: Files not listed follow in their usual order.
+#: Test files by their measured time (seconds of one xdist worker, `pytest -n 2 --dist
+#: loadfile --durations=0`, summed over each file's setup and calls; the stress and
+#: closure-driver files as trimmed after that run), longest first.  With `--dist
+#: loadfile` the workers take whole files from a queue; xdist's default queue puts the
+#: files with the most tests first, which left the long files with few tests for the end,
+#: where one worker ran them alone.  Longest first (LPT) keeps both workers busy to the
+#: end.  Files not listed follow in their usual order.
 LONGEST_FIRST = (
-    "tests/test_optimize.py",        # 189
-    "tests/test_notebooks.py",       # 180
-    "tests/test_adjoint.py",         # 175
-    "tests/test_batch.py",           # 173
-    "tests/test_contact.py",         # 162
-    "tests/test_solvers.py",         # 141
-    "tests/test_design.py",          # 136
-    "tests/test_soft_pairs.py",      # 131
-    "tests/test_closure_driver.py",  # 118
-    "tests/stress/test_stress_special.py",   # 102
-    "tests/test_coaptation.py",      # 95
-    "tests/stress/test_stress_matrix.py",    # 78
-    "tests/test_validation.py",      # 55
-    "tests/test_barrier_closure.py",  # 49
+    "tests/stress/test_stress_special.py",   # 350
+    "tests/test_optimize.py",        # 139
+    "tests/test_patient_root.py",    # 131
+    "tests/test_solvers.py",         # 115
+    "tests/test_batch.py",           # 101
+    "tests/test_notebooks.py",       # 98
+    "tests/test_adjoint.py",         # 89
+    "tests/test_contact.py",         # 81
+    "tests/test_admissible_start.py",  # 80
+    "tests/test_soft_pairs.py",      # 72
+    "tests/test_design.py",          # 72
+    "tests/test_energies.py",        # 65
+    "tests/test_barrier_closure.py",  # 62
+    "tests/test_docs.py",            # 61
+    "tests/stress/test_stress_matrix.py",    # 53
 )
 
 

@@ -3,18 +3,18 @@ checks and reports go through it.
 
 The driver's logic is tested with a scripted solver in place of `valve.close` (a valve
 whose equilibrium exists up to a known pressure, ``P_LIM``, and runs away above it), so
-each decision is checked exactly and fast; a real closure checks that `simulate`,
-`simulate_batch` and the stress suite give one valve the same outcome.
+each decision is checked exactly and fast.  That `simulate` and the stress suite give
+one real valve the same outcome past a limit point is checked in
+tests/stress/test_stress_special.py, beside the stress suite's own run of that valve.
 """
 import types
 
 import numpy as np
 import pytest
 
-from jaxvalve import Scene, simulate, simulate_batch
+from jaxvalve import Scene
 
 from jaxvalve.valve import closure
-import stress_suite as S
 from jaxvalve import valve as V
 from jaxvalve.simulation import build_scene_valve
 from jaxvalve.solvers import RESULTS, Stats
@@ -97,6 +97,36 @@ def test_a_load_past_the_limit_ends_at_a_limit_point_and_the_next_is_skipped(val
     assert skipped.report.result == "limit_point"
 
 
+class Patient(Scripted):
+    """`Scripted` through the barrier Newton's patience: with ``solver.patience`` > 0 a
+    solve past the limit stops early (`stagnation`, 40 steps) instead of running away;
+    logs (pressure, patience) of every call."""
+
+    def __call__(self, valve, material, p, *, x0, solver=None, **kw):
+        sol = super().__call__(valve, material, p, x0=x0, **kw)
+        self.calls[-1] = (float(p), solver.patience)
+        if int(sol.result) == RESULTS.escaped and solver.patience > 0:
+            return _sol(np.asarray(x0, float), RESULTS.stagnation, 40, residual=2e-3)
+        return sol
+
+
+def test_the_barrier_path_confirms_an_early_stop_with_a_full_solve(valve, monkeypatch):
+    """On the barrier path the driver gives the continuation the solve without the
+    patience as its ``confirm``: the early stops past the limit do not hide it, the full
+    solve to the target runs away, and the load ends at the limit point, bracketed by
+    full solves; the stops alone would have ended it as `stagnation`."""
+    from jaxvalve.solvers import BarrierNewton
+    s = _stand_in(monkeypatch, Patient)()
+    scene = SCENE.replace(contact="barrier", solver="newton")
+    assert isinstance(scene.make_solver(), BarrierNewton) and scene.make_solver().patience
+    he, lim = closure.close_valve(valve, scene)
+    assert he.converged and lim.limit_point, lim.report.describe()
+    assert P_LIM * 0.99 <= lim.report.limit_pressure <= P_LIM
+    full = [i for i, (_, patience) in enumerate(s.calls) if patience == 0]
+    assert s.calls[full[0]] == (80.0, 0) and full == list(range(full[0], len(s.calls)))
+    assert any(q > P_LIM and patience for q, patience in s.calls[:full[0]])
+
+
 def test_a_given_first_attempt_is_used_and_a_stale_one_is_not(valve, scripted, monkeypatch):
     """`simulate_batch` hands its batched attempts in as ``first``: a converged one is
     taken as it is (no solve); one that ran away is followed by the continuation, and the
@@ -135,32 +165,6 @@ def test_throw_raises_at_the_first_load_that_did_not_converge(valve, scripted):
     scripted(limit=P_LIM)
     with pytest.raises(ConvergenceError, match="80 mmHg did not converge: limit_point"):
         closure.close_valve(valve, SCENE, throw=True)
-
-
-# ----------------------------------------------------------------------- real closures
-def test_simulate_batch_and_stress_share_the_driver_past_a_limit_point():
-    """Neo-Hookean E = 0.05 MPa at 80 mmHg on the stress suite's template a (its inflation
-    limit is near 11 mmHg): `simulate`, a batch member and the stress suite all report
-    ``limit_point`` at the same pressure, with the same state."""
-    from jaxvalve.geometry.leaflet_mesh import mesh_leaflet
-    tpls = S.paper_templates()
-    tpl = tpls["a"][0]
-    v = S.make_valve(tpl, S.STRESS_H, S.mapped_mesh(mesh_leaflet(tpls["b"][0], S.STRESS_H),
-                                                    tpl))
-    scene = Scene(r=tpl.r, a=tpl.a, b=tpl.b, alpha=tpl.alpha, h=S.STRESS_H,
-                  model="neo-hookean", E=0.05, max_steps=S.STRESS_MAX_STEPS)
-    res = simulate(scene, valve=v, throw=False)
-    bat = simulate_batch(scene, valve=v, throw=False)
-    rec, = [r for r in S.run_group(v, template="a", mesh="regular", model="neo-hookean",
-                                   precision="float64", Es=(0.05,), Ps=(80.0,),
-                                   case="limit-point")]
-    a, b = res.solves[1], bat[0].solves[1]
-    assert a.result == b.result == rec.result == "limit_point"
-    assert a.limit_pressure == b.limit_pressure
-    assert f"no equilibrium above {a.limit_pressure:.4g}" in rec.cause
-    np.testing.assert_allclose(bat[0].x, res.x, rtol=0, atol=1e-9)
-    # the member's continuation past its batched attempt is the batch's follow-up time
-    assert 0 < bat.timings["follow_up"] <= bat.timings["solve"]
 
 
 # ----------------------------------------------------------------------- the fallback

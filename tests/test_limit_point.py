@@ -309,3 +309,71 @@ def test_solves_that_stall_just_past_a_fold_under_a_runaway_end_at_a_limit_point
     s = _Fold(runaway=np.inf)
     out = ramp(s, np.array([3.0]), 80.0, 3.0, Ramp(max_steps=1000), cut=cut)
     assert out.status == "max_steps_reached" and 1000 <= out.steps < 1000 + 300
+
+
+class _Patient(_Fold):
+    """`_Fold` seen through a solver's patience: every solve above ``fold - early`` stops
+    early (`stagnation`, 60 steps): the runaways, before they have gone far enough to
+    count as runaways, and the solves just below the fold, where Newton converges slowly.
+    ``full`` is the same solve without that stop (the ramp's ``confirm``);
+    ``target_converges``: the full solve converges at the target (a solve that was about
+    to converge)."""
+
+    def __init__(self, target_converges=False, early=0.5, **kw):
+        super().__init__(**kw)
+        self.target_converges, self.early, self.confirmed = target_converges, early, []
+
+    def __call__(self, p, x):
+        from jaxvalve.solvers import Solution, Stats
+        if p <= self.fold - self.early:
+            return super().__call__(p, x)
+        self.tried.append(p)
+        stats = Stats(steps=60, force_evals=60, hvps=0, residual=2e-3)
+        return Solution(x=np.array([float(x[0])]), result=int(RESULTS.stagnation),
+                        stats=stats)
+
+    def full(self, p, x):
+        from jaxvalve.solvers import Solution, Stats
+        self.confirmed.append(p)
+        if self.target_converges:
+            stats = Stats(steps=150, force_evals=150, hvps=0, residual=1e-9)
+            return Solution(x=np.array([p]), result=int(RESULTS.successful), stats=stats)
+        return _Fold.__call__(self, p, x)
+
+
+def test_a_ramp_confirms_an_early_stop_before_it_ends_on_it():
+    """A solver's patience stops the runaways past a fold as it stops a cycling solve
+    (`stagnation`), so the ramp sees no runaway.  Before it ends on such a stop it solves
+    once more without the early stop (``confirm``), from its highest equilibrium straight
+    to the target: that solve runs away, and from there the ramp brackets the limit point
+    with full solves, so the early stops just below the fold do not place it too low.
+    Without ``confirm`` the same ramp ends as `stagnation`.  A full solve to the target
+    that converges ends the ramp converged; one that fails in another way ends it with
+    that failure, at once."""
+    from jaxvalve.solvers.continuation import cut_on
+    from jaxvalve.solvers import BarrierNewton
+    cut = cut_on(BarrierNewton())
+    s = _Patient()
+    out = ramp(s, np.array([3.0]), 80.0, 3.0, Ramp(max_steps=3000), cut=cut, confirm=s.full)
+    assert out.status == "limit_point", out.history
+    assert s.fold - s.early < out.pressure <= s.fold < out.p_stall < s.runaway
+    assert out.p_stall - out.pressure <= 0.01 * out.p_stall
+    assert s.runaway <= out.p_escape < 80.0
+    # the first full solve goes to the target (and runs away); from there every solve is
+    # a full one: the ramp brackets the limit with the solver that can tell a runaway
+    first = [q for q, *_ in out.history].index(80.0, 1)
+    assert out.history[first][:2] == (80.0, "escaped") and s.confirmed[0] == 80.0
+    assert s.confirmed == [q for q, *_ in out.history[first:]]
+    s = _Patient()
+    out = ramp(s, np.array([3.0]), 80.0, 3.0, Ramp(max_steps=3000), cut=cut)
+    assert out.status == "stagnation" and out.p_escape is None and s.confirmed == []
+    assert out.pressure <= s.fold - s.early
+    s = _Patient(target_converges=True)
+    out = ramp(s, np.array([3.0]), 80.0, 3.0, Ramp(max_steps=3000), cut=cut, confirm=s.full)
+    assert out.converged and out.pressure == 80.0 and s.confirmed == [80.0]
+    assert out.history[-1][:2] == (80.0, "successful")
+    s = _Patient(runaway=np.inf)                      # the full solve stalls as well
+    out = ramp(s, np.array([3.0]), 80.0, 3.0, Ramp(max_steps=3000), cut=cut, confirm=s.full)
+    assert out.status == "max_steps_reached" and s.confirmed == [80.0]
+    assert out.history[-1][:2] == (80.0, "max_steps_reached")
+    assert out.p_escape is None

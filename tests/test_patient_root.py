@@ -1,8 +1,14 @@
 """From a CT scan to a closed valve: `jaxvalve phantom`, `jaxvalve segment` (surface, mask,
 QC figure, JSON, landmarks), `jaxvalve simulate --root` on its outputs, and the closure in
-the segmented asymmetric root with every model, against the symmetric benchmark root;
-notebooks/03_patient_root.ipynb runs here too (h = 2 mm: tiny meshes, since compile time
-dominates)."""
+the segmented asymmetric root (StVK from the notebook, the mass-spring model from the CLI),
+against the symmetric benchmark root; notebooks/03_patient_root.ipynb runs here too (h = 2
+mm: tiny meshes, since compile time dominates).  The neo-Hookean and Gent laws close the
+same way (the driver does not depend on the law; the benchmark valve closes with
+neo-Hookean leaflets in tests/test_notebooks.py and with Gent leaflets in
+tests/stress/test_stress_special.py and tests/test_admissible_start.py), and each took
+another minute here: each law compiles its own FIRE and barrier programs, and at h = 2 mm
+the smooth law's 3 mmHg closure in this root fails first (about 5500 FIRE steps) before
+the barrier path closes it."""
 import json
 from pathlib import Path
 
@@ -14,7 +20,6 @@ from jaxvalve.io.markups import read_markups
 from jaxvalve.io.plots import COINCIDE_MM, profile_distance
 from jaxvalve.io.volumes import read_mask, read_volume
 from jaxvalve.scene import Scene
-from jaxvalve.simulation import simulate
 from jaxvalve.valve import leaflet_crossings
 from stress_suite import ipctk_intersects
 from test_notebooks import run_notebook
@@ -107,14 +112,13 @@ def _facts(res):
 
 @pytest.fixture(scope="module")
 def closed(patient, nb03):
-    """Every model in the root that `jaxvalve segment` wrote (mass-spring through
-    `jaxvalve simulate --root`, as a user runs it: read back from metrics.json and the
-    leaflets' .vtu files); StVK is the notebook's."""
+    """Two models in the root that `jaxvalve segment` wrote: mass-spring through
+    `jaxvalve simulate --root`, as a user runs it (read back from metrics.json and the
+    leaflets' .vtu files), and the notebook's StVK."""
     from jaxvalve.io.files import read_surface
     from jaxvalve.simulation import build_scene_valve
     root = (str(patient / "out" / "root.stl"), str(patient / "out" / "landmarks.mrk.json"))
-    out = {m: _facts(simulate(Scene(root=root, h=H, model=m, pressure=P), throw=False))
-           for m in ("neo-hookean", "gent")}
+    out = {}
     done = patient / "closed"
     assert main(["simulate", "--root", *root, "--model", "mass-spring", "--h", str(H),
                  "--pressure", str(P), "--out", str(done), "--no-figures"]) == 0
@@ -138,7 +142,7 @@ def test_notebook03_segments_within_target_and_fits_the_paths(nb03):
     np.testing.assert_allclose(nb03["report"]["path_length_mm"], SUTURED, rtol=2e-3)
 
 
-@pytest.mark.parametrize("model", ["stvk", "neo-hookean", "gent", "mass-spring"])
+@pytest.mark.parametrize("model", ["stvk", "mass-spring"])
 def test_valve_closes_in_the_segmented_phantom_root(closed, model):
     res = closed[model]
     assert res["converged"], res["status"]

@@ -30,9 +30,13 @@ contact (`jaxvalve.contact.ccd`), so the leaflets can never cross.  Each step:
    and its fold angle is free.
 4. Stop when ||F_free|| / ||F_pressure|| < rtol (with ``max_pushes`` > 0, at a stable
    state: `lowest_modes`; an unstable equilibrium is pushed off along its mode, at most
-   ``max_pushes`` times, then `RESULTS.unstable`), or with `RESULTS.escaped` once a node has
+   ``max_pushes`` times, then `RESULTS.unstable`), with `RESULTS.escaped` once a node has
    moved farther than the start state's diameter (past a limit point the merit has no
-   minimum and each step moves ``dx_max``; `jaxvalve.solvers.continuation` takes it from there).
+   minimum and each step moves ``dx_max``; `jaxvalve.solvers.continuation` takes it from
+   there), or with `RESULTS.stagnation` once the best residual, in the Newton-Krylov
+   regime, has not halved for ``patience`` steps while no node moved farther than
+   `DRIFT` of that diameter (a cycle, not a runaway; the continuation then cuts the load
+   step).
 
 The solve runs on the host: a Python loop around jitted kernels (energies, forces, element
 and pair Hessians), each compiled once per mesh: pair lists are evaluated in chunks of
@@ -60,9 +64,19 @@ from ..valve.checks import FOLD_DEG
 from ..errors import ParameterError
 from .base import RESULTS, Solution, Stats, check_settings, escape_distance
 
-__all__ = ["BarrierNewton", "solve_barrier", "CHUNK"]
+__all__ = ["BarrierNewton", "solve_barrier", "CHUNK", "DRIFT"]
 
 CHUNK = 512
+
+#: Patience's drift guard, as a fraction of the start state's diameter (the escape
+#: distance): a solve whose best residual has not halved within its patience is stopped
+#: as cycling only if no node moved farther than this since the last halving; one that
+#: did is running away (past a limit point) and goes on until it escapes, for the
+#: continuation to bracket the limit.  Measured at h = 0.88 mm (diameter 30.7-33.1 mm):
+#: the failing solves of Table 4's cell E1 = 0.05, E2 = 0.569 MPa moved 0.001-5.4 mm
+#: (at most 0.17 of it) in their windows of 40 steps; runaways past the limit point of
+#: Table 5's 0.1 MPa springs move about 0.3 mm a step, 12 mm (0.39) in 40 steps.
+DRIFT = 0.25
 
 _log = logging.getLogger("jaxvalve")
 
@@ -85,8 +99,8 @@ class BarrierNewton:
     search cut at most exact_halvings times before the projected direction is tried.
     patience: the solve stops as `RESULTS.stagnation` once its best relative residual,
     below exact_below, has not halved for this many steps (0: never) and no node has
-    moved more than dx_max since it last did, as FIRE's does; continuation in pressure
-    then cuts the load step (`cut_on`)."""
+    moved more than `DRIFT` of the start's diameter since it last did, as FIRE's does;
+    continuation in pressure then cuts the load step (`cut_on`)."""
 
     rtol: float = 1e-6
     max_steps: int = 300
@@ -109,12 +123,10 @@ class BarrierNewton:
     #: residuals of 3e-4 to 5e-3 for the rest of their step cap (800 steps measured on
     #: Table 4's cell E1 = 0.05, E2 = 0.569 MPa, h = 1.5 mm, 3 -> 22.25 mmHg), while
     #: the ones that converge halve their best residual at least every 28 steps (7
-    #: solves of its continuation); stopped at 40 steps without a halving, the three
-    #: E1 = 0.05 MPa cells closed in 750, 554 and 800 steps instead of 978, 747 and 831.
-    #: Opt-in (0, the default: no patience) until the test suite has run with it: the
-    #: CI runs tried with 40 and with 0 were both too slow to finish (a third done after
-    #: 16 minutes each), so they did not show what it costs
-    patience: int = 0
+    #: solves of its continuation); stopped at 40 steps without a halving (with the
+    #: `DRIFT` guard), that cell at h = 0.88 mm closes in 1346 steps where without the
+    #: patience it stopped at the continuation's step budget (docs/barrier-contact.md)
+    patience: int = 40
     #: failures after which continuation in pressure cuts the load step
     #: (`jaxvalve.solvers.continuation.cut_on`): Newton converges in tens of iterations from a
     #: near enough start, so a solve still short of rtol at its cap had too long a step.
@@ -547,15 +559,15 @@ def solve_barrier(problem, params, x0, solver: BarrierNewton, topo: BarrierTopol
         # patience, once the solve has reached the Newton-Krylov regime (below
         # exact_below): above it the first steps swing the leaflets (from the open
         # placement at 3 mmHg: 41 steps at 0.19 without a halving, then converged).
-        # A solve that has moved a node more than dx_max since then is drifting (past a
-        # limit point, where the runaway test must see it go), not cycling: its clock
-        # restarts.  (Table 5's mass-spring valve at E = 0.1 MPa, h = 0.88 mm: without
-        # this, its solves at 80 and 41.5 mmHg, beyond the limit, stopped at 74 and 62
-        # steps and the ramp never saw a runaway.)
+        # A solve that has moved a node more than DRIFT of the escape distance since
+        # then is running away (past a limit point, where the runaway test must see it
+        # go), not cycling: its clock restarts.  (Table 5's mass-spring valve at E = 0.1
+        # MPa, h = 0.88 mm: without this guard its solves at 80 and 41.5 mmHg, beyond the
+        # limit, stopped at 74 and 62 steps and the ramp never saw a runaway.)
         if res < 0.5 * best or res < solver.exact_below <= best:
             best, mark, x_mark = res, n, x
         elif solver.patience and best < solver.exact_below and n - mark > solver.patience:
-            if np.max(np.sum((x - x_mark) ** 2, axis=1)) > solver.dx_max ** 2:
+            if np.max(np.sum((x - x_mark) ** 2, axis=1)) > (DRIFT * escape) ** 2:
                 mark, x_mark = n, x
             else:
                 result = RESULTS.stagnation

@@ -98,14 +98,13 @@ def _never_silent(records):
             assert r.cause
 
 
-def test_stvk_float64_closes_cleanly_and_soft_runs_report(valve):
+def test_stvk_float64_closes_cleanly(valve):
     """StVK, float64: E = 1 MPa closes at 3 and 80 mmHg with every check passed and no
-    crossing; a soft leaflet under the diastolic load (E = 0.1 MPa, 80 mmHg; FIRE stalls
-    there, README Known limits) converges cleanly or reports why not."""
+    crossing.  (Soft valves: a Table 4 cell and a limit point in test_stress_special.py;
+    a soft StVK valve, E = 0.1 MPa at 80 mmHg, closes through nine continuation solves in
+    about three minutes, too long for this suite: `benchmarks/stress.py` runs it.)"""
     recs = S.run_group(valve, template="benchmark", mesh="regular", model="stvk",
                        precision="float64", Es=(1.0,), Ps=(3.0, 80.0), max_steps=MAX_STEPS)
-    recs += S.run_group(valve, template="benchmark", mesh="regular", model="stvk",
-                        precision="float64", Es=(0.1,), Ps=(80.0,), max_steps=MAX_STEPS)
     _never_silent(recs)
     ok = {r.P: r for r in recs if r.E == 1.0}
     for P in (3.0, 80.0):

@@ -11,6 +11,7 @@ import stress_suite as S
 from jaxvalve import valve as V
 from jaxvalve.geometry.leaflet_mesh import mesh_leaflet
 from jaxvalve.scene import Scene
+from jaxvalve import simulate
 
 MAX_STEPS = 3000
 H = 2.0
@@ -142,3 +143,13 @@ def test_a_soft_neo_hookean_valve_past_its_inflation_limit_ends_at_a_limit_point
     assert ok, text
     assert rec.crossings == 0 and rec.min_J > 0 and rec.max_fold_deg < 150
     assert "escaped" in rec.cause and "80 mmHg escaped" in rec.cause
+    # the one closure driver: `simulate` reports the same limit point as the stress
+    # suite's run, with the metrics of the state at that pressure (a batch member hands
+    # its batched attempt to the same driver: tests/test_closure_driver.py; a real batch
+    # of this valve added another 110 s to this test, too long for this suite)
+    scene = Scene(r=tpl.r, a=tpl.a, b=tpl.b, alpha=tpl.alpha, h=H, model="neo-hookean",
+                  E=0.05, max_steps=S.STRESS_MAX_STEPS)
+    res = simulate(scene, valve=v, throw=False)
+    a = res.solves[1]
+    assert a.result == rec.result and a.limit_pressure == rec.limit_pressure
+    assert not res.converged and res.metrics.h_cc == pytest.approx(rec.h_CC, abs=1e-9)
