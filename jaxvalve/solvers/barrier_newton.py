@@ -72,10 +72,10 @@ CHUNK = 512
 #: distance): a solve whose best residual has not halved within its patience is stopped
 #: as cycling only if no node moved farther than this since the last halving; one that
 #: did is running away (past a limit point) and goes on until it escapes, for the
-#: continuation to bracket the limit.  Measured at h = 0.88 mm (diameter 30.7-33.1 mm):
-#: the failing solves of Table 4's cell E1 = 0.05, E2 = 0.569 MPa moved 0.001-5.4 mm
-#: (at most 0.17 of it) in their windows of 40 steps; runaways past the limit point of
-#: Table 5's 0.1 MPa springs move about 0.3 mm a step, 12 mm (0.39) in 40 steps.
+#: continuation to bracket the limit.  Measured at h = 0.88 mm: the failing solves of
+#: Table 4's cells E1 = 0.05 MPa (E2 = 0.3, 0.569) moved 0.001-7.3 mm in their windows
+#: of 40 steps (diameters 30.7-33.1 mm: at most 0.24 of it); a runaway past the limit
+#: point of Table 5's 0.1 MPa springs moved 25.0 mm in its window (0.69 of 36.0 mm).
 DRIFT = 0.25
 
 _log = logging.getLogger("jaxvalve")

@@ -145,8 +145,8 @@ def test_a_soft_neo_hookean_valve_past_its_inflation_limit_ends_at_a_limit_point
     assert "escaped" in rec.cause and "80 mmHg escaped" in rec.cause
     # the one closure driver: `simulate` reports the same limit point as the stress
     # suite's run, with the metrics of the state at that pressure (a batch member hands
-    # its batched attempt to the same driver: tests/test_closure_driver.py; a real batch
-    # of this valve added another 110 s to this test, too long for this suite)
+    # its batched attempt to the same driver: tests/test_closure_driver.py; with a real
+    # batch of this valve beside `simulate` this test took 149 s, against 103 s without)
     scene = Scene(r=tpl.r, a=tpl.a, b=tpl.b, alpha=tpl.alpha, h=H, model="neo-hookean",
                   E=0.05, max_steps=S.STRESS_MAX_STEPS)
     res = simulate(scene, valve=v, throw=False)
