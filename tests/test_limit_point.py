@@ -377,3 +377,14 @@ def test_a_ramp_confirms_an_early_stop_before_it_ends_on_it():
     assert out.status == "max_steps_reached" and s.confirmed == [80.0]
     assert out.history[-1][:2] == (80.0, "max_steps_reached")
     assert out.p_escape is None
+
+
+def test_a_solver_declares_its_full_solve_for_the_confirm_step():
+    """The barrier Newton with patience gives the same solver without it for the ramp's
+    confirm solves; without patience, or for FIRE (no early stop), there is none."""
+    from jaxvalve.solvers import BarrierNewton
+    from jaxvalve.solvers.continuation import full_solver
+    full = full_solver(BarrierNewton(patience=40, max_steps=123))
+    assert full == BarrierNewton(patience=0, max_steps=123)
+    assert full_solver(BarrierNewton(patience=0)) is None
+    assert full_solver(FIRE()) is None

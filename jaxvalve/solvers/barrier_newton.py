@@ -137,6 +137,11 @@ class BarrierNewton:
     #: (171 steps), and through 41.5 mmHg a valid one
     cut_on = ("stagnation", "max_steps_reached", "inverted_triangles")
 
+    def without_patience(self):
+        """This solver without its early stop (patience 0), or None where it has none:
+        the solver of `continuation.ramp`'s confirm solves (`continuation.full_solver`)."""
+        return dataclasses.replace(self, patience=0) if self.patience else None
+
     def __post_init__(self):
         check_settings(self, dict(rtol="positive", max_steps="positive_count",
                                   dx_max="positive", ccd_s="unit", tau0="positive",

@@ -49,7 +49,7 @@ from ..errors import ParameterError
 from .base import RESULTS
 from .base import check_settings
 
-__all__ = ["Ramp", "RampResult", "ramp", "cut_on", "CUT_ON"]
+__all__ = ["Ramp", "RampResult", "ramp", "cut_on", "CUT_ON", "full_solver"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -145,6 +145,13 @@ def cut_on(solver) -> tuple:
     iteration cap is, as in finite-element load stepping, taken to have been given too
     long a step), else `CUT_ON`."""
     return tuple(getattr(solver, "cut_on", CUT_ON))
+
+
+def full_solver(solver):
+    """``solver`` without its early stop, where it declares one (``without_patience``: the
+    barrier Newton's patience), else None: the solver of `ramp`'s ``confirm`` solves."""
+    without = getattr(solver, "without_patience", None)
+    return None if without is None else without()
 
 
 def ramp(solve: Callable, x0, p_target: float, p_start: float = 0.0,

@@ -41,11 +41,10 @@ import jax
 import numpy as np
 
 from . import model as V
-from ..solvers.continuation import Ramp, RampResult, cut_on, ramp
+from ..solvers.continuation import Ramp, RampResult, cut_on, full_solver, ramp
 from ..errors import ConvergenceError, ParameterError
 from ..scene import Scene
 from ..solvers import RESULTS
-from ..solvers.barrier_newton import BarrierNewton
 from ..solvers.stall import stopped_cause
 from ..timing import compile_timer
 
@@ -171,11 +170,10 @@ def close_load(valve, scene: Scene, pressure: float, x0, *, p_from: float = 0.0,
                        bending=bending, x0=x, throw=False, check_state=True, nbrs=nbrs,
                        ref=ref, whole_lists=whole_lists)
 
-    # the barrier Newton's patience stops a solve early: before the ramp ends on such a
+    # a solver's early stop (the barrier Newton's patience): before the ramp ends on such a
     # stop it solves to the target without it, and after a runaway it brackets the
     # limit point without it (`continuation.ramp`'s confirm)
-    patient = isinstance(solver, BarrierNewton) and solver.patience > 0
-    full = dataclasses.replace(solver, patience=0) if patient else None
+    full = full_solver(solver)
 
     if first is None:
         say(f"closing at {pressure:g} mmHg ({scene.model}, {scene.solver} solver, "
@@ -183,7 +181,7 @@ def close_load(valve, scene: Scene, pressure: float, x0, *, p_from: float = 0.0,
     with compile_timer() as ct:
         t0 = time.perf_counter()
         rr = ramp(solve, x0, pressure, p_from, Ramp.for_solver(solver), cut=cut_on(solver),
-                  confirm=(lambda p, x: solve(p, x, full)) if patient else None)
+                  confirm=None if full is None else (lambda p, x: solve(p, x, full)))
         sol, p_state = rr.final
         jax.block_until_ready(sol.x)
         wall = time.perf_counter() - t0
