@@ -3,9 +3,9 @@ checks and reports go through it.
 
 The driver's logic is tested with a scripted solver in place of `valve.close` (a valve
 whose equilibrium exists up to a known pressure, ``P_LIM``, and runs away above it), so
-each decision is checked exactly and fast.  That `simulate` and the stress suite give
-one real valve the same outcome past a limit point is checked in
-tests/stress/test_stress_special.py, beside the stress suite's own run of that valve.
+each decision is checked exactly and fast, `simulate`'s report of a limit point among
+them.  The stress suite's run of a real valve past its limit point, through the same
+driver, is in tests/stress/test_stress_special.py.
 """
 import types
 
@@ -95,6 +95,33 @@ def test_a_load_past_the_limit_ends_at_a_limit_point_and_the_next_is_skipped(val
     assert 120.0 not in s.calls
     assert skipped.report.pressure == 120.0 and skipped.report.steps == 0
     assert skipped.report.result == "limit_point"
+
+
+def test_simulate_reports_the_drivers_limit_point_with_the_state_at_its_pressure(
+        valve, scripted):
+    """`simulate` hands the driver's outcome on as it is: past the limit its second
+    solve is the driver's `limit_point` with the limit pressure, the state and metrics
+    are those of the equilibrium at that pressure, the result is not converged, and with
+    throw it raises, naming the limit point.  (The same on a real valve, a soft
+    neo-Hookean one past its inflation limit: tests/stress/test_stress_special.py.)"""
+    from jaxvalve import simulate
+    from jaxvalve.errors import ConvergenceError
+    from jaxvalve.simulation import measure
+    scripted(limit=P_LIM)
+    he, lim = closure.close_valve(valve, SCENE)
+    res = simulate(SCENE, valve=valve, throw=False)
+    rep = res.solves[1]
+    assert rep.result == "limit_point" and not res.converged
+    assert rep.limit_pressure == lim.report.limit_pressure
+    assert P_LIM * 0.99 <= rep.limit_pressure <= P_LIM
+    assert res.solves[0].converged and res.solves[0].pressure == 3.0
+    # the state at the limit pressure (x moved by p), and its metrics
+    np.testing.assert_allclose(res.x[:, 0] - np.asarray(valve.x_start)[:, 0],
+                               rep.limit_pressure)
+    m = measure(valve, res.x, SCENE.g_c)
+    assert res.metrics.h_cc == pytest.approx(m.h_cc, abs=1e-12)
+    with pytest.raises(ConvergenceError, match="limit_point"):
+        simulate(SCENE, valve=valve)
 
 
 class Patient(Scripted):

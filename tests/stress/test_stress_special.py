@@ -11,7 +11,6 @@ import stress_suite as S
 from jaxvalve import valve as V
 from jaxvalve.geometry.leaflet_mesh import mesh_leaflet
 from jaxvalve.scene import Scene
-from jaxvalve import simulate
 
 MAX_STEPS = 3000
 H = 2.0
@@ -125,7 +124,8 @@ def test_a_soft_neo_hookean_valve_past_its_inflation_limit_ends_at_a_limit_point
     away and the continuation in pressure brackets the limit. The run is reported as
     limit_point, never as converged, with a bracket narrower than 1 % of its upper end
     between the 3 mmHg equilibrium and the target, and the state at the limit is a clean
-    closed valve (no crossing, no fold)."""
+    closed valve (no crossing, no fold).  (`simulate` hands on the same driver's limit
+    point: tests/test_closure_driver.py.)"""
     tpls = S.paper_templates()
     tpl = tpls["a"][0]
     v = S.make_valve(tpl, H, S.mapped_mesh(mesh_leaflet(tpls["b"][0], H), tpl))
@@ -147,13 +147,3 @@ def test_a_soft_neo_hookean_valve_past_its_inflation_limit_ends_at_a_limit_point
     assert ok, text
     assert rec.crossings == 0 and rec.min_J > 0 and rec.max_fold_deg < 150
     assert "escaped" in rec.cause and "80 mmHg escaped" in rec.cause
-    # the one closure driver: `simulate` reports the same limit point as the stress
-    # suite's run, with the metrics of the state at that pressure (a batch member hands
-    # its batched attempt to the same driver: tests/test_closure_driver.py; with a real
-    # batch of this valve beside `simulate` this test took 149 s, against 103 s without)
-    scene = Scene(r=tpl.r, a=tpl.a, b=tpl.b, alpha=tpl.alpha, h=H, model="neo-hookean",
-                  E=0.05, max_steps=S.STRESS_MAX_STEPS)
-    res = simulate(scene, valve=v, throw=False)
-    a = res.solves[1]
-    assert a.result == rec.result and a.limit_pressure == rec.limit_pressure
-    assert not res.converged and res.metrics.h_cc == pytest.approx(rec.h_CC, abs=1e-9)
