@@ -311,12 +311,14 @@ def test_solves_that_stall_just_past_a_fold_under_a_runaway_end_at_a_limit_point
     assert out.status == "max_steps_reached" and 1000 <= out.steps < 1000 + 300
 
 
-def test_under_a_runaway_a_stall_bounds_the_bracket_and_is_retried_only_from_within_rtol():
-    """Once a solve has run away, a stall under it is an end of the bracket like the
-    runaway: the ramp bisects below it, and solves the stalled pressure again only from
-    an equilibrium within rtol of it, not after every equilibrium (each retry of a
-    stall is a full solve to the step cap).  The fold of the 0.1 MPa springs (template
-    (a), h = 2 mm): equilibria up to 46.0 mmHg, stalls at 46.3, a runaway at 51.1."""
+def test_under_a_runaway_a_twice_stalled_pressure_bounds_the_bracket():
+    """Once a solve has run away, a pressure under it that stalls is solved once more
+    from the next, nearer equilibrium (far below a fold a stall is often a load step
+    too long); stalled twice, it is an end of the bracket like the runaway: the ramp
+    bisects below it and solves it again only from an equilibrium within rtol of it, not
+    after every equilibrium (each such solve is a full solve to the step cap).  The fold
+    of the 0.1 MPa springs (template (a), h = 2 mm): equilibria up to 46.0 mmHg, stalls
+    at 46.3, a runaway at 51.1."""
     from jaxvalve.solvers.continuation import cut_on
     from jaxvalve.solvers import BarrierNewton
     s = _Fold(fold=46.1, runaway=51.1)
@@ -325,14 +327,13 @@ def test_under_a_runaway_a_stall_bounds_the_bracket_and_is_retried_only_from_wit
     assert out.limit_point and out.pressure <= s.fold < out.p_stall < s.runaway
     assert out.p_stall - out.pressure <= 0.01 * out.p_stall
     hist = out.history
-    under = next(i for i, h in enumerate(hist) if h[1] == "escaped" and h[0] < 80.0)
-    for i in range(under + 1, len(hist)):
-        q, status = hist[i][:2]
-        if any(h[0] == q and h[1] != "successful" for h in hist[:i]):   # a stall retried
+    for i, (q, status, *_) in enumerate(hist):
+        before = [h for h in hist[:i] if h[0] == q and h[1] == "max_steps_reached"]
+        if len(before) >= 2:              # a third solve of a twice-stalled pressure
             p_prev, st_prev = hist[i - 1][:2]
             assert st_prev == "successful" and q - p_prev <= 0.01 * q, hist
     stalls = [h for h in hist if h[1] == "max_steps_reached"]
-    assert len(stalls) == 2 and out.steps == 800      # retried after every equilibrium: 5, 1700
+    assert len(stalls) == 3 and out.steps == 1100     # retried after every equilibrium: 5, 1700
 
 
 class _Patient(_Fold):

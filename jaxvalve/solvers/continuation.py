@@ -15,8 +15,9 @@ load increment was too large for the solver, not a sign that no equilibrium exis
 fails in another way its solver declares (`cut_on`: the barrier Newton's iteration cap),
 is treated as a step too long: the ramp retries at the midpoint between the last
 equilibrium and the stalled pressure, and after each equilibrium reached that way tries
-the stalled pressure again, from the nearer state (under a runaway, only from an
-equilibrium within ``rtol`` of it: there a stall bounds the bracket like a runaway).
+the stalled pressure again, from the nearer state (under a runaway, a pressure that
+has stalled twice bounds the bracket like a runaway, and is solved again only from an
+equilibrium within ``rtol`` of it).
 (The soft Table 4 cell E1 = 0.05, E2 = 0.569 MPa stagnates from 3 straight to 80
 mmHg on the barrier path and converges through 10, 20 and 40 mmHg.)  The result is one of
 
@@ -184,6 +185,7 @@ def ramp(solve: Callable, x0, p_target: float, p_start: float = 0.0,
     p_ok, x_ok, sol_ok = p_start, x0, None
     p_bad = None      # the lowest pressure at which a solve ran away
     p_stall = None    # the pressure of the last stagnated solve not yet passed
+    n_stall = 0       # how many solves at p_stall have stalled
     history, steps = [], 0
     sol_fail = None   # the last failed solve
     p = p_target
@@ -218,6 +220,7 @@ def ramp(solve: Callable, x0, p_target: float, p_start: float = 0.0,
                 return RampResult("limit_point", p_ok, p_bad, x_ok, sol_ok, sol,
                                   tuple(history), steps)
         elif status in cut and p - p_ok > settings.rtol * p:
+            n_stall = n_stall + 1 if p == p_stall else 1
             p_stall = p
         elif status in cut and p_bad is not None and sol_ok is not None and p < p_bad:
             # stalled within rtol of an equilibrium, under a runaway: past the fold
@@ -238,7 +241,8 @@ def ramp(solve: Callable, x0, p_target: float, p_start: float = 0.0,
         # the ramp would end on a failure that may be the early stop's (`confirm`): one
         # solve from the highest equilibrium straight to the target, without it
         p = p_target if to_target else _next_pressure(p_ok, p_bad, p_stall, p_target,
-                                                      sol.converged, settings.rtol)
+                                                      sol.converged, settings.rtol,
+                                                      n_stall)
     # out of solves (or a runaway down to the start): the last solve's failure, a runaway
     # or a stagnation (a converged solve at the target returns above); out of solves just
     # after an equilibrium (which a failure must have preceded): the last failure
@@ -251,22 +255,25 @@ def _spent(settings: Ramp, steps: int) -> bool:
     return settings.max_steps is not None and steps >= settings.max_steps
 
 
-def _next_pressure(p_ok, p_bad, p_stall, p_target, converged, rtol):
+def _next_pressure(p_ok, p_bad, p_stall, p_target, converged, rtol, n_stall=1):
     """The next pressure of `ramp`: the midpoint below the lowest runaway or stall; after
     an equilibrium below a stall, the stalled pressure itself (from the nearer state),
-    except under a runaway, where a stall is an end of the bracket like the runaway: the
-    midpoint again, and the stalled pressure only from an equilibrium within ``rtol`` of
-    it (a solve there stalls again at a fold, where the ramp ends, or converges, and the
-    bracket moves up); else the target.
+    except under a runaway once that pressure has stalled twice (``n_stall``): then it
+    bounds the bracket like the runaway, the ramp takes the midpoint below it and solves
+    it again only from an equilibrium within ``rtol`` of it (where it stalls again at a
+    fold, which ends the ramp, or converges and the bracket moves up); else the target.
 
-    Retrying the stalled pressure after every equilibrium under a runaway cost a full
-    solve to the Newton step cap each time (the springs at 0.1 MPa, template (a), h = 2
-    mm: the stall at 46.3 mmHg was retried from 43.9, 45.1, 45.7 and 46.0 mmHg)."""
+    A stall under a runaway far from the fold is often a load step too long, and one
+    retry from the nearer state passes it (the springs at 0.1 MPa, template (a), h = 2
+    mm: 41.5 mmHg stalled from 3 under the runaway at 80 and converged from 22.2; made a
+    bracket end at once, the ramp crept up to it through six more equilibria).  Near the
+    fold every retry is a full solve to the Newton step cap (the same valve: the stall
+    at 46.3 mmHg was retried from 43.9, 45.1, 45.7 and 46.0 mmHg)."""
     if p_stall is not None and converged:
         if p_bad is None or p_stall >= p_bad:
             return p_stall if p_bad is None else 0.5 * (p_ok + p_bad)
-        if p_stall - p_ok <= rtol * p_stall:
-            return p_stall
+        if n_stall < 2 or p_stall - p_ok <= rtol * p_stall:
+            return p_stall if n_stall >= 2 else min(p_stall, 0.5 * (p_ok + p_bad))
         return 0.5 * (p_ok + p_stall)
     failed = [q for q in (p_bad, p_stall) if q is not None]
     return 0.5 * (p_ok + min(failed)) if failed else p_target
