@@ -108,7 +108,7 @@ def test_simulate_reports_the_drivers_limit_point_with_the_state_at_its_pressure
     from jaxvalve.errors import ConvergenceError
     from jaxvalve.simulation import measure
     scripted(limit=P_LIM)
-    he, lim = closure.close_valve(valve, SCENE)
+    _, lim = closure.close_valve(valve, SCENE)
     res = simulate(SCENE, valve=valve, throw=False)
     rep = res.solves[1]
     assert rep.result == "limit_point" and not res.converged

@@ -255,7 +255,7 @@ def _spent(settings: Ramp, steps: int) -> bool:
     return settings.max_steps is not None and steps >= settings.max_steps
 
 
-def _next_pressure(p_ok, p_bad, p_stall, p_target, converged, rtol, n_stall=1):
+def _next_pressure(p_ok, p_bad, p_stall, p_target, converged, rtol, n_stall):
     """The next pressure of `ramp`: the midpoint below the lowest runaway or stall; after
     an equilibrium below a stall, the stalled pressure itself (from the nearer state),
     except under a runaway once that pressure has stalled twice (``n_stall``): then it
@@ -270,10 +270,10 @@ def _next_pressure(p_ok, p_bad, p_stall, p_target, converged, rtol, n_stall=1):
     fold every retry is a full solve to the Newton step cap (the same valve: the stall
     at 46.3 mmHg was retried from 43.9, 45.1, 45.7 and 46.0 mmHg)."""
     if p_stall is not None and converged:
-        if p_bad is None or p_stall >= p_bad:
-            return p_stall if p_bad is None else 0.5 * (p_ok + p_bad)
-        if n_stall < 2 or p_stall - p_ok <= rtol * p_stall:
-            return p_stall if n_stall >= 2 else min(p_stall, 0.5 * (p_ok + p_bad))
-        return 0.5 * (p_ok + p_stall)
+        if p_bad is None:
+            return p_stall
+        if n_stall < 2 or p_stall >= p_bad:
+            return min(p_stall, 0.5 * (p_ok + p_bad))
+        return p_stall if p_stall - p_ok <= rtol * p_stall else 0.5 * (p_ok + p_stall)
     failed = [q for q in (p_bad, p_stall) if q is not None]
     return 0.5 * (p_ok + min(failed)) if failed else p_target
