@@ -270,13 +270,16 @@ class _Fold:
     def __init__(self, fold=20.3, runaway=22.0, stall_steps=300):
         self.fold, self.runaway, self.stall_steps, self.tried = fold, runaway, stall_steps, []
 
-    def __call__(self, p, x):
+    def __call__(self, p, x, max_steps=None):
         from jaxvalve.solvers import Solution, Stats
         self.tried.append(p)
+        cap = self.stall_steps if max_steps is None else min(max_steps, self.stall_steps)
         if p <= self.fold:
             code, n, res, y = RESULTS.successful, 10, 1e-9, p
         elif p < self.runaway:
-            code, n, res, y = RESULTS.max_steps_reached, self.stall_steps, 3e-3, float(x[0])
+            code, n, res, y = RESULTS.max_steps_reached, cap, 3e-3, float(x[0])
+        elif cap < 50:                    # stopped before it has gone far enough
+            code, n, res, y = RESULTS.max_steps_reached, cap, 5.0, float(x[0])
         else:
             code, n, res, y = RESULTS.escaped, 50, 5.0, 1e3
         stats = Stats(steps=n, force_evals=n, hvps=0, residual=res)
@@ -347,6 +350,7 @@ class _Patient(_Fold):
     def __init__(self, target_converges=False, early=0.5, **kw):
         super().__init__(**kw)
         self.target_converges, self.early, self.confirmed = target_converges, early, []
+        self.caps = []
 
     def __call__(self, p, x):
         from jaxvalve.solvers import Solution, Stats
@@ -357,13 +361,14 @@ class _Patient(_Fold):
         return Solution(x=np.array([float(x[0])]), result=int(RESULTS.stagnation),
                         stats=stats)
 
-    def full(self, p, x):
+    def full(self, p, x, max_steps=None):
         from jaxvalve.solvers import Solution, Stats
         self.confirmed.append(p)
+        self.caps.append(max_steps)
         if self.target_converges:
             stats = Stats(steps=150, force_evals=150, hvps=0, residual=1e-9)
             return Solution(x=np.array([p]), result=int(RESULTS.successful), stats=stats)
-        return _Fold.__call__(self, p, x)
+        return _Fold.__call__(self, p, x, max_steps)
 
 
 def test_a_ramp_confirms_an_early_stop_before_it_ends_on_it():
@@ -383,7 +388,9 @@ def test_a_ramp_confirms_an_early_stop_before_it_ends_on_it():
     assert out.status == "limit_point", out.history
     assert s.fold - s.early < out.pressure <= s.fold < out.p_stall < s.runaway
     assert out.p_stall - out.pressure <= 0.01 * out.p_stall
-    assert s.runaway <= out.p_escape < 80.0
+    # (the full solves under the runaway at 80 stop at 3 x 10 steps, before a runaway
+    # there escapes: `_bracket_cap`; they bound the bracket as stalls)
+    assert s.runaway <= out.p_escape <= 80.0
     # the first full solve goes to the target (and runs away); from there every solve is
     # a full one: the ramp brackets the limit with the solver that can tell a runaway
     first = [q for q, *_ in out.history].index(80.0, 1)
@@ -413,3 +420,37 @@ def test_a_solver_declares_its_full_solve_for_the_confirm_step():
     assert full == BarrierNewton(patience=0, max_steps=123)
     assert full_solver(BarrierNewton(patience=0)) is None
     assert full_solver(FIRE()) is None
+
+
+def test_under_a_runaway_full_solves_stop_at_a_few_times_the_slowest_converged_one():
+    """Near a fold a Newton solve from a nearby equilibrium converges in a few steps or
+    drifts to any cap, so under a runaway the ramp stops its full solves after
+    ``stall_factor`` times the most steps a converged solve of the ramp took (at least
+    ``stall_floor``): the same bracket and the same equilibrium as with the solver's own
+    cap (here 300 steps a stall, as with a floor of 300), for a fraction of the steps.
+    The first full solve, to the target before any runaway, keeps the solver's cap."""
+    from jaxvalve.solvers.continuation import cut_on
+    from jaxvalve.solvers import BarrierNewton
+    cut = cut_on(BarrierNewton())
+    runs = {}
+    for floor in (40, 300):
+        s = _Patient(fold=46.1, runaway=51.1)
+        out = ramp(s, np.array([3.0]), 80.0, 3.0, Ramp(max_steps=3000, stall_floor=floor),
+                   cut=cut, confirm=s.full)
+        assert out.limit_point, out.history
+        assert s.caps[0] is None and set(s.caps[1:]) == {floor}    # 3 x 10 steps < floor
+        runs[floor] = out
+    capped, full = runs[40], runs[300]
+    print("\ncapped:", capped.steps, [h[:3] for h in capped.history],
+          "\nfull:", full.steps, [h[:3] for h in full.history])
+    assert (capped.pressure, capped.p_stall) == (full.pressure, full.p_stall)
+    # a runaway stopped before it escaped (50 steps here) bounds the bracket as a stall
+    assert full.p_escape <= capped.p_escape
+    assert 2 * capped.steps < full.steps
+    # the cap follows the slowest converged solve: 3 x 20 steps above a floor of 40
+    assert Ramp().stall_factor == 3.0 and Ramp().stall_floor == 40
+    from jaxvalve.solvers.continuation import _bracket_cap
+    assert _bracket_cap(Ramp(), 20) == 60 and _bracket_cap(Ramp(), 5) == 40
+    assert _bracket_cap(Ramp(), 0) is None
+    with pytest.raises(ParameterError, match="stall_factor"):
+        Ramp(stall_factor=0.0)

@@ -17,7 +17,10 @@ is treated as a step too long: the ramp retries at the midpoint between the last
 equilibrium and the stalled pressure, and after each equilibrium reached that way tries
 the stalled pressure again, from the nearer state (under a runaway, a pressure that
 has stalled twice bounds the bracket like a runaway, and is solved again only from an
-equilibrium within ``rtol`` of it).
+equilibrium within ``rtol`` of it).  Under a runaway a full solve is stopped, as a
+stall, after a few times as many steps as the slowest converged solve of the ramp took
+(`Ramp.stall_factor`, `_bracket_cap`): near the fold a solve converges in a few steps or
+drifts to any cap.
 (The soft Table 4 cell E1 = 0.05, E2 = 0.569 MPa stagnates from 3 straight to 80
 mmHg on the barrier path and converges through 10, 20 and 40 mmHg.)  The result is one of
 
@@ -65,10 +68,16 @@ class Ramp:
     rtol: float = 0.01
     max_solves: int = 30
     max_steps: int | None = None
+    #: under a runaway, a full solve (``confirm``) is stopped once it has taken
+    #: max(stall_floor, stall_factor x the most steps any converged solve of this ramp
+    #: took) without converging, and counts as a stall (`_bracket_cap`)
+    stall_factor: float = 3.0
+    stall_floor: int = 40
 
     def __post_init__(self):
         check_settings(self, dict(rtol="unit", max_solves="positive_count",
-                                  max_steps="positive_count"), optional=("max_steps",))
+                                  max_steps="positive_count", stall_factor="positive",
+                                  stall_floor="positive_count"), optional=("max_steps",))
 
     @classmethod
     def for_solver(cls, solver, solves_worth: int = 10):
@@ -165,8 +174,9 @@ def ramp(solve: Callable, x0, p_target: float, p_start: float = 0.0,
     solve is at p_target; where it converges or fails for a reason other than a runaway,
     it is the only one.  Pressures in any unit, p_target > p_start >= 0.
     cut: the `RESULTS` names of failures that cut the load step (`cut_on`).
-    confirm(p, x) -> `Solution`: where ``solve`` stops early (a solver's patience), the
-    same solve without that stop.  Before the ramp ends on a failure in ``cut`` (within
+    confirm(p, x, max_steps) -> `Solution`: where ``solve`` stops early (a solver's
+    patience), the same solve without that stop, stopped at ``max_steps`` steps (None:
+    the solver's own cap; under a runaway, `_bracket_cap`).  Before the ramp ends on a failure in ``cut`` (within
     ``rtol`` of the highest equilibrium, or with its step budget spent) with no runaway
     seen, it solves once more from the highest equilibrium straight to the target with
     ``confirm``, and goes on from that solve's outcome: a solve stopped for not
@@ -178,6 +188,7 @@ def ramp(solve: Callable, x0, p_target: float, p_start: float = 0.0,
     converges slowly, and early stops near the fold placed the limit too low (those
     springs at h = 0.88 mm: 35.4 mmHg against 37.3 without the early stop)."""
     settings = Ramp() if settings is None else settings
+    slowest = 0       # the most steps a converged solve of this ramp took
     p_target, p_start = float(p_target), float(p_start)
     if not (np.isfinite(p_target) and np.isfinite(p_start) and p_target > p_start >= 0):
         raise ParameterError(f"ramp needs p_target > p_start >= 0; got p_start={p_start}, "
@@ -196,7 +207,11 @@ def ramp(solve: Callable, x0, p_target: float, p_start: float = 0.0,
         # a limit point, where Newton converges slowly and an early stop near the fold
         # would place the limit too low
         full = confirm is not None and (to_target or p_bad is not None)
-        sol = confirm(p, x_ok) if full else solve(p, x_ok)
+        if full:
+            cap = None if p_bad is None else _bracket_cap(settings, slowest)
+            sol = confirm(p, x_ok, max_steps=cap)
+        else:
+            sol = solve(p, x_ok)
         was_target, to_target = to_target, False
         status = sol.status
         n = int(sol.stats.steps)
@@ -207,6 +222,7 @@ def ramp(solve: Callable, x0, p_target: float, p_start: float = 0.0,
             return RampResult(status, p_ok, p_bad, x_ok, sol_ok, sol, tuple(history), steps)
         if sol.converged:
             p_ok, x_ok, sol_ok = p, sol.x, sol
+            slowest = max(slowest, n)
             if p >= p_target:
                 return RampResult("converged", p, p_bad, x_ok, sol_ok, None, tuple(history),
                                   steps)
@@ -248,6 +264,22 @@ def ramp(solve: Callable, x0, p_target: float, p_start: float = 0.0,
     # after an equilibrium (which a failure must have preceded): the last failure
     last = sol_fail if sol.converged else sol
     return RampResult(last.status, p_ok, p_bad, x_ok, sol_ok, last, tuple(history), steps)
+
+
+def _bracket_cap(settings: Ramp, slowest: int) -> int | None:
+    """The step cap of a full solve under a runaway: ``stall_factor`` times the most steps
+    a converged solve of this ramp took, at least ``stall_floor`` (None before any solve
+    converged: the solver's own cap).  Such a solve starts from an equilibrium near the
+    fold, where Newton converges in a few steps or not at all: past the fold the state
+    drifts slowly through the ghost of the lost equilibrium and a solve ran to the
+    solver's 200-step cap (the soft neo-Hookean valve of the stress tests, template (a),
+    E = 0.05 MPa, h = 2 mm: converged solves in the bracket 5-17 steps, three stalls at
+    200 steps each, 600 of the ramp's 921).  A solve stopped here is a stall (the cap is
+    in ``cut``) and bounds the bracket as one; a runaway stopped before it escaped is
+    such a stall too."""
+    if slowest == 0:
+        return None
+    return max(settings.stall_floor, int(np.ceil(settings.stall_factor * slowest)))
 
 
 def _spent(settings: Ramp, steps: int) -> bool:

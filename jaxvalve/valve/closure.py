@@ -181,7 +181,8 @@ def close_load(valve, scene: Scene, pressure: float, x0, *, p_from: float = 0.0,
     with compile_timer() as ct:
         t0 = time.perf_counter()
         rr = ramp(solve, x0, pressure, p_from, Ramp.for_solver(solver), cut=cut_on(solver),
-                  confirm=None if full is None else (lambda p, x: solve(p, x, full)))
+                  confirm=None if full is None else (
+                      lambda p, x, max_steps: solve(p, x, _capped(full, max_steps))))
         sol, p_state = rr.final
         jax.block_until_ready(sol.x)
         wall = time.perf_counter() - t0
@@ -201,6 +202,13 @@ def close_load(valve, scene: Scene, pressure: float, x0, *, p_from: float = 0.0,
     if first is None or len(rr.history) > 1:
         say(f"  {rep.describe()}; {rep.solve_s:.2f} s (+{rep.compile_s:.1f} s compile)")
     return LoadSolve(report=rep, x=x, solution=sol, ramp=rr)
+
+
+def _capped(solver, max_steps):
+    """``solver`` with its step cap lowered to ``max_steps`` (None: as it is)."""
+    if max_steps is None or max_steps >= solver.max_steps:
+        return solver
+    return dataclasses.replace(solver, max_steps=int(max_steps))
 
 
 #: fractions of ``he_pressure`` at which `swing_shut` tries to swing the valve shut, in turn
