@@ -336,7 +336,7 @@ def test_under_a_runaway_a_twice_stalled_pressure_bounds_the_bracket():
             p_prev, st_prev = hist[i - 1][:2]
             assert st_prev == "successful" and q - p_prev <= 0.01 * q, hist
     stalls = [h for h in hist if h[1] == "max_steps_reached"]
-    assert len(stalls) == 3 and out.steps == 1100     # retried after every equilibrium: 5, 1700
+    assert len(stalls) == 3 and out.steps == 1100   # retried after every equilibrium: 5, 1700
 
 
 class _Patient(_Fold):

@@ -176,15 +176,15 @@ def ramp(solve: Callable, x0, p_target: float, p_start: float = 0.0,
     cut: the `RESULTS` names of failures that cut the load step (`cut_on`).
     confirm(p, x, max_steps) -> `Solution`: where ``solve`` stops early (a solver's
     patience), the same solve without that stop, stopped at ``max_steps`` steps (None:
-    the solver's own cap; under a runaway, `_bracket_cap`).  Before the ramp ends on a failure in ``cut`` (within
-    ``rtol`` of the highest equilibrium, or with its step budget spent) with no runaway
-    seen, it solves once more from the highest equilibrium straight to the target with
-    ``confirm``, and goes on from that solve's outcome: a solve stopped for not
-    converging fast enough may have been a runaway that had not yet gone far enough to
-    count as one (without its drift guard, the barrier Newton's patience stopped the
-    runaways past the 0.1 MPa springs' limit point after 62-74 steps), or may have been
-    about to converge.  Once a solve has run
-    away every solve is ``confirm``'s: the ramp then brackets a limit point, where Newton
+    the solver's own cap; under a runaway, `_bracket_cap`).  Before the ramp ends on a
+    failure in ``cut`` (within ``rtol`` of the highest equilibrium, or with its step
+    budget spent) with no runaway seen, it solves once more from the highest equilibrium
+    straight to the target with ``confirm``, and goes on from that solve's outcome: a
+    solve stopped for not converging fast enough may have been a runaway that had not
+    yet gone far enough to count as one (without its drift guard, the barrier Newton's
+    patience stopped the runaways past the 0.1 MPa springs' limit point after 62-74
+    steps), or may have been about to converge.  Once a solve has run away every solve
+    is ``confirm``'s: the ramp then brackets a limit point, where Newton
     converges slowly, and early stops near the fold placed the limit too low (those
     springs at h = 0.88 mm: 35.4 mmHg against 37.3 without the early stop)."""
     settings = Ramp() if settings is None else settings
