@@ -54,7 +54,8 @@ from . import contact as _contact
 from .vmap_control import branches
 from .contact.neighbours import DEFAULT_SCAN_RATIO, MAX_GROUP
 from .contact.soft_pairs import SoftPairs, stale_soft_pairs
-from .solvers.equilibrium import _make_args, contact_cutoff, stale_pairs, update_pairs
+from .solvers.equilibrium import (_fill, _make_args, _setting_args, contact_cutoff, stale_pairs,
+                                  update_pairs)
 from .errors import ConvergenceError, ParameterError
 from .mechanics.materials import Material
 from .mechanics.problem import mmhg, validate_params
@@ -321,8 +322,11 @@ def _member(material, *, solver, problem, base, x0, nbrs, pressures, skin, lazy,
 
 
 @functools.partial(jax.jit, static_argnames=("solver", "skin", "lazy", "loop", "handoff"))
-def _close_batch(materials, problem, base, x0, nbrs, pressures, *, solver, skin, lazy, loop,
-                 handoff=0):
+def _close_batch(materials, problem, base, x0, nbrs, pressures, settings, *, solver, skin,
+                 lazy, loop, handoff=0):
+    """Both closures of every member.  solver: static, without its traced settings
+    (``settings``, `equilibrium.TRACED_SETTINGS`)."""
+    solver = _fill(solver, settings)
     f = functools.partial(_member, solver=solver, problem=problem, base=base, x0=x0,
                           nbrs=nbrs, pressures=pressures, skin=skin, lazy=lazy, loop=False)
     if jax.tree_util.tree_leaves(materials)[0].shape[0] == 1:
@@ -369,6 +373,7 @@ def _run_batch(members, stacked, valve, base, pressures, solver, skin, loop, say
     x0 = jnp.asarray(valve.x_start)
     lazy = getattr((getattr(solver, "warm_start", None) or (solver,))[0], "lazy_force", False)
     nbrs = _stale(base.contact, problem, x0, skin)
+    blank, settings = _setting_args(solver, jnp.asarray(x0).dtype)
     B = len(members)
     todo = np.arange(B)
     stages = None
@@ -378,8 +383,8 @@ def _run_batch(members, stacked, valve, base, pressures, solver, skin, loop, say
         sub = stacked if len(todo) == B else jax.tree_util.tree_map(lambda a: a[todo], stacked)
         with compile_timer() as ct:
             t0 = time.perf_counter()
-            out = _close_batch(sub, problem, base, x0, nbrs, pressures, solver=solver,
-                               skin=float(skin), lazy=bool(lazy), loop=loop,
+            out = _close_batch(sub, problem, base, x0, nbrs, pressures, settings,
+                               solver=blank, skin=float(skin), lazy=bool(lazy), loop=loop,
                                handoff=int(handoff))
             out = jax.device_get(jax.block_until_ready(out))
             wall = time.perf_counter() - t0

@@ -156,7 +156,7 @@ def test_materials_as_a_dict_over_the_template():
 def _fake_batch(calls, overflow):
     """A stand-in for the compiled batch: member results tagged by call, and the pair
     list overflow that ``overflow(call, E) -> (overflowed, max_group)`` says."""
-    def fake(sub, problem, base, x0, nbrs, pressures, **kw):
+    def fake(sub, problem, base, x0, nbrs, pressures, settings, **kw):
         E = np.asarray(sub.E)
         calls.append((E.tolist(), nbrs.capacity, nbrs.soft_capacity))
         over, group = np.array([overflow(len(calls), e) for e in E]).T

@@ -428,3 +428,30 @@ def test_a_batch_members_failed_first_attempt_falls_back(valve, two_laws):
     assert closed.converged and closed.report.path == "newton+barrier"
     assert f"max_steps_reached, residual 1.00e-06, {FALLBACK.max_steps} steps" in \
         closed.report.fallback
+
+
+class RunsAway(TwoLaws):
+    """`TwoLaws` with a fold: the smooth law converges up to 20 mmHg, stops at its step
+    cap just above, and runs away from 22 mmHg; the barrier law converges up to 20.5
+    mmHg and runs away above it."""
+
+    def __call__(self, valve, material, p, *, x0, contact=None, **kw):
+        sol = super().__call__(valve, material, p, x0=x0, contact=contact, **kw)
+        barrier = self.calls[-1][0] == "barrier"
+        if (barrier and p > 20.5) or (not barrier and p >= 22.0):
+            sol = _sol(np.asarray(sol.x), RESULTS.escaped, 11)
+        return sol
+
+
+def test_the_fallback_ramp_tries_the_failed_paths_runaway_first(valve, monkeypatch):
+    """The smooth path's 80 mmHg ramp ran away down to 22.25 mmHg and then failed at its
+    step cap: the barrier ramp, after its own runaway at 80, tries 22.25 next instead
+    of halving through 41.5 (`continuation.ramp`'s hint), and brackets the limit itself."""
+    s = _stand_in(monkeypatch, RunsAway)()
+    he, lim = closure.close_valve(valve, FALLBACK)
+    smooth = [p for law, p in s.calls if law == "smooth"]
+    barrier = [p for law, p in s.calls if law == "barrier"]
+    assert smooth[:4] == [3.0, 80.0, 41.5, 22.25]
+    assert barrier[:3] == [3.0, 80.0, 22.25] and 41.5 not in barrier
+    assert lim.limit_point and lim.report.path == "newton+barrier"
+    assert 20.3 <= lim.report.limit_pressure <= 20.5

@@ -454,3 +454,28 @@ def test_under_a_runaway_full_solves_stop_at_a_few_times_the_slowest_converged_o
     assert _bracket_cap(Ramp(), 0) is None
     with pytest.raises(ParameterError, match="stall_factor"):
         Ramp(stall_factor=0.0)
+
+
+def test_a_hint_of_another_solvers_runaway_is_tried_after_the_first_runaway():
+    """``hint``, a pressure where another solver ran away on the same valve (the failed
+    path's, in the fallback): after its own first runaway the ramp tries it before
+    halving, and finds the same limit with fewer solves.  A hint that has an equilibrium
+    here raises the bracket's lower end; one outside the bracket is ignored.  Only the
+    ramp's own solves place the limit."""
+    plain, hinted = _Fold(fold=11.3, runaway=11.3), _Fold(fold=11.3, runaway=11.3)
+    a = ramp(plain, np.array([3.0]), 80.0, 3.0)
+    b = ramp(hinted, np.array([3.0]), 80.0, 3.0, hint=12.625)
+    assert a.limit_point and b.limit_point
+    assert plain.tried[:3] == [80.0, 41.5, 22.25] and hinted.tried[:2] == [80.0, 12.625]
+    assert b.pressure <= 11.3 < b.p_escape and b.p_escape - b.pressure <= 0.01 * b.p_escape
+    assert len(hinted.tried) < len(plain.tried)
+    # a hint with an equilibrium here (another law, or a solver that ran away early)
+    s = _Fold(fold=30.0, runaway=30.0)
+    out = ramp(s, np.array([3.0]), 80.0, 3.0, hint=12.625)
+    assert s.tried[:3] == [80.0, 12.625, 46.3125] and 12.625 <= out.pressure <= 30.0
+    assert out.limit_point and out.pressure < 30.0 < out.p_escape
+    # a hint above the target, or at the start, changes nothing
+    for hint in (90.0, 3.0):
+        s = _Fold(fold=11.3, runaway=11.3)
+        ramp(s, np.array([3.0]), 80.0, 3.0, hint=hint)
+        assert s.tried == plain.tried

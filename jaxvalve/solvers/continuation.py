@@ -167,7 +167,7 @@ def full_solver(solver):
 
 def ramp(solve: Callable, x0, p_target: float, p_start: float = 0.0,
          settings: Ramp | None = None, cut: tuple = CUT_ON,
-         confirm: Callable | None = None) -> RampResult:
+         confirm: Callable | None = None, hint: float | None = None) -> RampResult:
     """Continuation in pressure from an equilibrium x0 at p_start to p_target.
 
     solve(p, x) -> `Solution`: the equilibrium at pressure p from the start x.  The first
@@ -186,7 +186,13 @@ def ramp(solve: Callable, x0, p_target: float, p_start: float = 0.0,
     steps), or may have been about to converge.  Once a solve has run away every solve
     is ``confirm``'s: the ramp then brackets a limit point, where Newton
     converges slowly, and early stops near the fold placed the limit too low (those
-    springs at h = 0.88 mm: 35.4 mmHg against 37.3 without the early stop)."""
+    springs at h = 0.88 mm: 35.4 mmHg against 37.3 without the early stop).
+    hint: a pressure at which another solver ran away on the same valve (the failed
+    path's lowest runaway, `jaxvalve.valve.closure.fall_back`).  After the first runaway
+    here the ramp tries it next, where it lies inside the bracket, instead of the
+    midpoint: a runaway there bounds the bracket as any other, an equilibrium there
+    raises its lower end.  Nothing is taken on trust: only this ramp's own solves place
+    the limit."""
     settings = Ramp() if settings is None else settings
     slowest = 0       # the most steps a converged solve of this ramp took
     p_target, p_start = float(p_target), float(p_start)
@@ -259,6 +265,9 @@ def ramp(solve: Callable, x0, p_target: float, p_start: float = 0.0,
         p = p_target if to_target else _next_pressure(p_ok, p_bad, p_stall, p_target,
                                                       sol.converged, settings.rtol,
                                                       n_stall)
+        if (hint is not None and status == RESULTS.escaped.name and p_stall is None
+                and p_ok < hint < p_bad):
+            p, hint = float(hint), None      # the other solver's runaway, once
     # out of solves (or a runaway down to the start): the last solve's failure, a runaway
     # or a stagnation (a converged solve at the target returns above); out of solves just
     # after an equilibrium (which a failure must have preceded): the last failure

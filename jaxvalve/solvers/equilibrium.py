@@ -179,16 +179,57 @@ def _run(solver, problem, params, x0, nbrs, skin):
     return y, result, stats, args
 
 
+#: Solver settings that reach the compiled solve as traced values, not as part of the
+#: static solver: solves that differ only in their tolerance or step cap (a scene's
+#: rtol, the optimiser's trial cap, the stress suite's cap) run one compiled program.
+#: In the test suite the same FIRE loop was otherwise compiled once per setting
+#: (5-18 s each).  The other settings shape the program (FIRE's patience traces its
+#: residual; FixedPoint's delta) and stay static.
+TRACED_SETTINGS = ("rtol", "max_steps")
+
+
+def _split(solver):
+    """(``solver`` with its `TRACED_SETTINGS` set to None, {name: value}): the static key
+    of the compiled solve and the settings it takes as arguments."""
+    vals = {k: getattr(solver, k) for k in TRACED_SETTINGS
+            if isinstance(getattr(solver, k, None), (int, float, np.number))
+            and not isinstance(getattr(solver, k), bool)}
+    if not vals:
+        return solver, {}
+    blank = object.__new__(type(solver))
+    blank.__dict__.update(solver.__dict__)
+    blank.__dict__.update(dict.fromkeys(vals))
+    return blank, vals
+
+
+def _fill(blank, settings):
+    """The solver of `_split`, with its settings put back (traced, inside the solve)."""
+    if not settings:
+        return blank
+    solver = object.__new__(type(blank))
+    solver.__dict__.update(blank.__dict__)
+    solver.__dict__.update(settings)
+    return solver
+
+
+def _setting_args(solver, dtype):
+    """`_split`'s values as arrays: float settings in the state's dtype, counts int32."""
+    blank, vals = _split(solver)
+    return blank, {k: (np.asarray(v, np.int32) if isinstance(v, (int, np.integer))
+                       else np.asarray(v, dtype)) for k, v in vals.items()}
+
+
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0, 5))
-def _equilibrium(solver, problem, params, x0, nbrs, skin):
+def _equilibrium(blank, problem, params, x0, nbrs, skin, settings):
+    solver = _fill(blank, settings)
     y, result, stats, args = _run(solver, problem, params, x0, nbrs, skin)
     return y, result, stats, args["nbrs"], args["delta"]
 
 
-def _eq_fwd(solver, problem, params, x0, nbrs, skin):
-    out = _equilibrium(solver, problem, params, x0, nbrs, skin)
+def _eq_fwd(blank, problem, params, x0, nbrs, skin, settings):
+    out = _equilibrium(blank, problem, params, x0, nbrs, skin, settings)
     y, _, _, nb, delta = out
-    return out, (problem, params, y, nb, delta)
+    return out, (problem, params, y, nb, delta, settings)
 
 
 def _zeros_like(t):
@@ -197,19 +238,25 @@ def _zeros_like(t):
                    else jnp.zeros_like(a)), t)
 
 
-def _eq_bwd(solver, skin, res, cts):
-    problem, params, y, nb, delta = res
+def _eq_bwd(blank, skin, res, cts):
+    problem, params, y, nb, delta, settings = res
     gp, gx0 = adjoint.cotangents(problem, params, y, nb, delta, cts[0])
-    return (_zeros_like(problem), gp, gx0, _zeros_like(nb))
+    return (_zeros_like(problem), gp, gx0, _zeros_like(nb), _zeros_like(settings))
 
 
 _equilibrium.defvjp(_eq_fwd, _eq_bwd)
 
 
-@functools.partial(jax.jit, static_argnums=(0, 5, 6))
 def _solve_jit(solver, problem, params, x0, nbrs, skin, whole_lists=False):
+    """The compiled solve: ``solver``'s `TRACED_SETTINGS` as arguments, the rest static."""
+    blank, settings = _setting_args(solver, jnp.asarray(x0).dtype)
+    return _solve_compiled(blank, problem, params, x0, nbrs, skin, whole_lists, settings)
+
+
+@functools.partial(jax.jit, static_argnums=(0, 5, 6))
+def _solve_compiled(blank, problem, params, x0, nbrs, skin, whole_lists, settings):
     with one_prefix() if whole_lists else contextlib.nullcontext():
-        return _equilibrium(solver, problem, params, x0, nbrs, skin)
+        return _equilibrium(blank, problem, params, x0, nbrs, skin, settings)
 
 
 @functools.partial(jax.jit, static_argnums=(6,))

@@ -146,7 +146,7 @@ def _params(valve, scene, material, p, ref):
 
 def close_load(valve, scene: Scene, pressure: float, x0, *, p_from: float = 0.0,
                material=None, ref=None, nbrs=None, whole_lists: bool = False, first=None,
-               say: Callable[[str], None] = _quiet) -> LoadSolve:
+               hint: float | None = None, say: Callable[[str], None] = _quiet) -> LoadSolve:
     """Close ``valve`` at ``pressure`` mmHg from x0 (N, 3) mm, an equilibrium at p_from
     mmHg (or the placement, p_from = 0), by the scene's law and solver.
 
@@ -155,6 +155,7 @@ def close_load(valve, scene: Scene, pressure: float, x0, *, p_from: float = 0.0,
     every solve starts from (e.g. an empty one of larger capacity).  whole_lists:
     `equilibrium.solve`'s.  first: the first attempt at ``pressure`` from x0, already
     solved (a `ValveSolution`, state-checked; `simulate_batch`'s batched program).
+    hint: a pressure at which another path ran away on this valve (`continuation.ramp`).
     say: progress, one line per phase."""
     material = scene.material() if material is None else material
     solver = scene.make_solver()
@@ -182,7 +183,8 @@ def close_load(valve, scene: Scene, pressure: float, x0, *, p_from: float = 0.0,
         t0 = time.perf_counter()
         rr = ramp(solve, x0, pressure, p_from, Ramp.for_solver(solver), cut=cut_on(solver),
                   confirm=None if full is None else (
-                      lambda p, x, max_steps: solve(p, x, _capped(full, max_steps))))
+                      lambda p, x, max_steps: solve(p, x, _capped(full, max_steps))),
+                  hint=hint)
         sol, p_state = rr.final
         jax.block_until_ready(sol.x)
         wall = time.perf_counter() - t0
@@ -320,10 +322,10 @@ def _skipped(prev: LoadSolve, p, why, say) -> LoadSolve:
 
 
 def _in_turn(valve, scene, material, x, pressures, nbrs, first, done, swung, say,
-             stop=False, p0=0.0):
+             stop=False, p0=0.0, hint=None):
     """The loads of `close_valve` on the scene's own path (no fallback).  stop: end
     after the first load that failed other than at a limit point (the fallback closes
-    every load again)."""
+    every load again).  hint: `close_load`'s, for every load."""
     start_s = 0.0
     if scene.contact == "barrier" and not swung and not done:
         x, p0, start_s = _timed_swing(valve, scene, x, material, say)
@@ -348,7 +350,7 @@ def _in_turn(valve, scene, material, x, pressures, nbrs, first, done, swung, say
         # smooth-law state; equal loads) is ramped as from the placement, from 0
         ls = close_load(valve, scene, p, x, p_from=p_prev if p_prev < p else 0.0,
                         material=material, nbrs=nbrs,
-                        first=f, say=say)
+                        first=f, hint=hint, say=say)
         if i == 0 and start_s:
             ls = dataclasses.replace(ls, start_s=start_s)
         out.append(ls)
@@ -437,8 +439,15 @@ def fall_back(valve, scene: Scene, loads, failed: LoadSolve, *, material=None, x
     # a load after one that failed starts from no equilibrium: it is skipped (a Gent
     # valve of Table 5 at 0.1 MPa spent 142 s on an 80 mmHg closure from the state of a
     # failed 3 mmHg one, to fail again)
+    # where the failed path ran away, the barrier ramps try that pressure right after
+    # their own first runaway instead of halving down to it (`continuation.ramp`'s hint):
+    # the stress suite's soft neo-Hookean valve (template (a), 0.05 MPa) ran away on
+    # FIRE at 12.6 mmHg, and the barrier ramp from 80 mmHg spent two runaways (41.5 and
+    # 22.2 mmHg, 140 Newton steps) to learn the same
+    escapes = [ls.ramp.p_escape for ls in loads
+               if ls.ramp is not None and ls.ramp.p_escape is not None]
     out = _in_turn(valve, barrier, material, x, pressures, None, (), (), True, say,
-                   stop=True, p0=p_swung)
+                   stop=True, p0=p_swung, hint=min(escapes) if escapes else None)
     while len(out) < len(pressures):
         out += (_skipped(out[-1], pressures[len(out)], f"the closure at "
                          f"{out[-1].report.pressure:g} mmHg did not converge", say),)
