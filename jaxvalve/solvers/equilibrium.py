@@ -183,40 +183,31 @@ def _run(solver, problem, params, x0, nbrs, skin):
 #: static solver: solves that differ only in their tolerance or step cap (a scene's
 #: rtol, the optimiser's trial cap, the stress suite's cap) run one compiled program.
 #: In the test suite the same FIRE loop was otherwise compiled once per setting
-#: (5-18 s each).  The other settings shape the program (FIRE's patience traces its
+#: (1.4-24 s a compile).  The other settings shape the program (FIRE's patience traces its
 #: residual; FixedPoint's delta) and stay static.
 TRACED_SETTINGS = ("rtol", "max_steps")
 
 
-def _split(solver):
-    """(``solver`` with its `TRACED_SETTINGS` set to None, {name: value}): the static key
-    of the compiled solve and the settings it takes as arguments."""
-    vals = {k: getattr(solver, k) for k in TRACED_SETTINGS
-            if isinstance(getattr(solver, k, None), (int, float, np.number))
-            and not isinstance(getattr(solver, k), bool)}
-    if not vals:
-        return solver, {}
-    blank = object.__new__(type(solver))
-    blank.__dict__.update(solver.__dict__)
-    blank.__dict__.update(dict.fromkeys(vals))
-    return blank, vals
-
-
-def _fill(blank, settings):
-    """The solver of `_split`, with its settings put back (traced, inside the solve)."""
+def _fill(solver, settings):
+    """``solver`` with the fields in ``settings`` replaced, unvalidated: set to None for
+    the static key of the compiled solve, or to tracers inside it."""
     if not settings:
-        return blank
-    solver = object.__new__(type(blank))
-    solver.__dict__.update(blank.__dict__)
-    solver.__dict__.update(settings)
-    return solver
+        return solver
+    out = object.__new__(type(solver))
+    out.__dict__.update(solver.__dict__)
+    out.__dict__.update(settings)
+    return out
 
 
 def _setting_args(solver, dtype):
-    """`_split`'s values as arrays: float settings in the state's dtype, counts int32."""
-    blank, vals = _split(solver)
-    return blank, {k: (np.asarray(v, np.int32) if isinstance(v, (int, np.integer))
-                       else np.asarray(v, dtype)) for k, v in vals.items()}
+    """(``solver`` with its `TRACED_SETTINGS` set to None, their values as arrays: float
+    settings in the state's dtype, counts int32)."""
+    vals = {k: getattr(solver, k) for k in TRACED_SETTINGS
+            if isinstance(getattr(solver, k, None), (int, float, np.number))
+            and not isinstance(getattr(solver, k), bool)}
+    return _fill(solver, dict.fromkeys(vals)), {
+        k: (np.asarray(v, np.int32) if isinstance(v, (int, np.integer))
+            else np.asarray(v, dtype)) for k, v in vals.items()}
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0, 5))

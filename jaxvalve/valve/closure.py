@@ -444,8 +444,7 @@ def fall_back(valve, scene: Scene, loads, failed: LoadSolve, *, material=None, x
     # the stress suite's soft neo-Hookean valve (template (a), 0.05 MPa) ran away on
     # FIRE at 12.6 mmHg, and the barrier ramp from 80 mmHg spent two runaways (41.5 and
     # 22.2 mmHg, 140 Newton steps) to learn the same
-    escapes = [ls.ramp.p_escape for ls in loads
-               if ls.ramp is not None and ls.ramp.p_escape is not None]
+    escapes = [ls.ramp.p_escape for ls in loads if ls.ramp.p_escape is not None]
     out = _in_turn(valve, barrier, material, x, pressures, None, (), (), True, say,
                    stop=True, p0=p_swung, hint=min(escapes) if escapes else None)
     while len(out) < len(pressures):
