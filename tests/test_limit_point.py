@@ -479,3 +479,5 @@ def test_a_hint_of_another_solvers_runaway_is_tried_after_the_first_runaway():
         s = _Fold(fold=11.3, runaway=11.3)
         ramp(s, np.array([3.0]), 80.0, 3.0, hint=hint)
         assert s.tried == plain.tried
+    with pytest.raises(ParameterError, match="hint"):
+        ramp(_Fold(), np.array([3.0]), 80.0, 3.0, hint=float("nan"))

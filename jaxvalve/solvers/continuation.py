@@ -199,6 +199,8 @@ def ramp(solve: Callable, x0, p_target: float, p_start: float = 0.0,
     if not (np.isfinite(p_target) and np.isfinite(p_start) and p_target > p_start >= 0):
         raise ParameterError(f"ramp needs p_target > p_start >= 0; got p_start={p_start}, "
                              f"p_target={p_target}")
+    if hint is not None and not (np.isfinite(hint) and hint > 0):
+        raise ParameterError(f"ramp's hint must be a positive finite pressure; got {hint}")
     p_ok, x_ok, sol_ok = p_start, x0, None
     p_bad = None      # the lowest pressure at which a solve ran away
     p_stall = None    # the pressure of the last stagnated solve not yet passed
