@@ -203,6 +203,7 @@ def ramp(solve: Callable, x0, p_target: float, p_start: float = 0.0,
         raise ParameterError(f"ramp's hint must be a positive finite pressure; got {hint}")
     p_ok, x_ok, sol_ok = p_start, x0, None
     p_bad = None      # the lowest pressure at which a solve ran away
+    sol_bad = None    # that solve
     p_stall = None    # the pressure of the last stagnated solve not yet passed
     n_stall = 0       # how many solves at p_stall have stalled
     history, steps = [], 0
@@ -236,8 +237,15 @@ def ramp(solve: Callable, x0, p_target: float, p_start: float = 0.0,
                                   steps)
             if p_stall is not None and p >= p_stall:
                 p_stall = None
+            if (p_bad is not None and p_stall is None
+                    and p_bad - p_ok <= settings.rtol * p_bad):
+                # the bracket under the runaway closed from below: every solve under it
+                # converged (without this the midpoints crept up to the runaway, each
+                # converging, until the ramp ran out of solves and reported the runaway)
+                return RampResult("limit_point", p_ok, p_bad, x_ok, sol_ok, sol_bad,
+                                  tuple(history), steps)
         elif status == RESULTS.escaped.name:
-            p_bad = p
+            p_bad, sol_bad = p, sol
             if p_bad - p_ok <= settings.rtol * p_bad:
                 if sol_ok is None:           # runaway down to the start: no equilibrium
                     break
