@@ -489,13 +489,24 @@ def test_a_bracket_closed_from_below_by_equilibria_ends_at_the_limit_point():
     than rtol, instead of creeping up to the runaway until its solves run out (the stress
     suite's neo-Hookean valve on template (c), 0.1 MPa at 80 mmHg: a runaway at 22.25
     mmHg, then 27 equilibria up to 22.2 mmHg, reported as `escaped`)."""
-    s = _Fold(fold=22.249, runaway=22.25)
-    out = ramp(s, np.array([3.0]), 80.0, 3.0)
-    assert s.tried[:3] == [80.0, 41.5, 22.25]            # 22.25 is the midpoint of 3-41.5
-    assert out.status == "limit_point" and out.p_escape == 22.25 and out.p_stall is None
-    assert out.p_escape - out.pressure <= 0.01 * out.p_escape
-    assert out.solution.converged and float(out.x[0]) == out.pressure
-    assert out.failure is not None and out.failure.status == "escaped"
-    # the first equilibrium within 1 % of the runaway ends it
-    within = [p for p in s.tried if p < 22.25 and 22.25 - p <= 0.01 * 22.25]
-    assert s.tried[-1] == within[0] and len(s.tried) <= 12
+    from jaxvalve.solvers import BarrierNewton
+    from jaxvalve.solvers.continuation import cut_on
+
+    class StallsAtTarget(_Fold):
+        # that valve's first solve, at the target, ended at its step cap before it ran
+        # away: a stall above the runaway, which must not keep the bracket open
+        def __call__(self, p, x, max_steps=None):
+            return super().__call__(p, x, 10 if p == 80.0 else max_steps)
+
+    for s, first in ((_Fold(fold=22.249, runaway=22.25), "escaped"),
+                     (StallsAtTarget(fold=22.249, runaway=22.25), "max_steps_reached")):
+        out = ramp(s, np.array([3.0]), 80.0, 3.0, cut=cut_on(BarrierNewton()))
+        assert out.history[0][1] == first
+        assert s.tried[:3] == [80.0, 41.5, 22.25]        # 22.25 is the midpoint of 3-41.5
+        assert out.status == "limit_point" and out.p_escape == 22.25 and out.p_stall is None
+        assert out.p_escape - out.pressure <= 0.01 * out.p_escape
+        assert out.solution.converged and float(out.x[0]) == out.pressure
+        assert out.failure is not None and out.failure.status == "escaped"
+        # the first equilibrium within 1 % of the runaway ends it
+        within = [p for p in s.tried if p < 22.25 and 22.25 - p <= 0.01 * 22.25]
+        assert s.tried[-1] == within[0] and len(s.tried) <= 12

@@ -237,7 +237,7 @@ def ramp(solve: Callable, x0, p_target: float, p_start: float = 0.0,
                                   steps)
             if p_stall is not None and p >= p_stall:
                 p_stall = None
-            if (p_bad is not None and p_stall is None
+            if (p_bad is not None and (p_stall is None or p_stall >= p_bad)
                     and p_bad - p_ok <= settings.rtol * p_bad):
                 # the bracket under the runaway closed from below: every solve under it
                 # converged (without this the midpoints crept up to the runaway, each
