@@ -372,7 +372,8 @@ def test_pair_kernels_sum_row_gradients_onto_nodes_and_compile_once_for_any_mesh
         w = rng.uniform(0.5, 1.0, B.CHUNK)
         w[-7:] = 0.0                  # padding
         eps = np.full(B.CHUNK, 1e-3)
-        # bring each point near its triangle, each edge near the other, inside d_hat
+        # bring each point within d_hat of its triangle (the random edge pairs give some
+        # edge-edge terms inside d_hat too: asserted below)
         x[rows[:, 0]] = x[rows[:, 1:]].mean(1) + 0.05 * law.dhat
         for kernel, full, args, rr in (
                 (B._pt_value_grad, pt_energies, (w,), rows),
