@@ -34,6 +34,18 @@ def _op_by_op(prob, params, x):
         return float(jnp.linalg.norm(F) / assembly.pressure_scale(x, prob, params)), bool(ok)
 
 
+def _rerun(prob, params, x0, solver):
+    """Only on a failure (the assertion messages below): the same solve run again with the
+    same compiled program, and once more compiled anew.  The CI has returned wrong results
+    from these solves that never reproduced here (docs/known-limits.md); this tells a
+    result wrong once from one that the program gives every time."""
+    again = equilibrium.solve(prob, params, x0, solver, throw=False)
+    with equilibrium._fresh_compilation():
+        fresh = equilibrium.solve(prob, params, x0, solver, throw=False)
+    return dict(rerun=again.describe(), recompiled=fresh.describe(),
+                rerun_max_dx=float(jnp.max(jnp.abs(again.x - fresh.x))))
+
+
 def _params(ref, mat=None, P=80.0):
     mat = StVenantKirchhoff(E=1.0, nu=0.45) if mat is None else mat
     return Params(ref=ref, material=mat, thickness=0.3, pressure=mmhg(P))
@@ -49,9 +61,9 @@ def test_all_solvers_reach_the_same_equilibrium(disk, mat):
     sols = [equilibrium.solve(prob, params, x0, s, throw=False) for s in solvers]
     for solver, s in zip(solvers, sols):      # the message names the solver that failed
         check = _op_by_op(prob, params, s.x)  # (residual, admissible) outside the solver loop
-        assert s.converged and float(s.stats.residual) < 1e-8, (type(solver).__name__,
-                                                                 s.describe(), check)
-        assert check[0] < 2e-8 and check[1], (type(solver).__name__, s.describe(), check)
+        ok = s.converged and float(s.stats.residual) < 1e-8 and check[0] < 2e-8 and check[1]
+        assert ok, (type(solver).__name__, s.describe(), check,
+                    _rerun(prob, params, x0, solver))
     for s in sols[1:]:
         np.testing.assert_allclose(s.x, sols[0].x, atol=1e-6)
     x = sols[0].x
@@ -131,12 +143,14 @@ def test_fire_refuses_steps_past_the_gent_limit(disk, Jm, P):
     prob, ref, x0 = disk
     params = _params(ref, Gent(mu=1 / 3, Jm=Jm), P=P)
     fire = equilibrium.solve(prob, params, x0, FIRE(rtol=1e-8), throw=False)
-    assert fire.converged and float(fire.stats.residual) < 1e-8, fire.describe()
+    assert fire.converged and float(fire.stats.residual) < 1e-8, (
+        fire.describe(), _rerun(prob, params, x0, FIRE(rtol=1e-8)))
     assert bool(assembly.stretch_admissible(fire.x, prob, params, assembly.prepare(prob, params)))
     x = gent_invariant(x0[:, :2], prob.triangles, fire.x) / Jm    # (I1 + 1/I2 - 3) / Jm
     if P < 10000:
         newton = equilibrium.solve(prob, params, x0, NewtonKrylov(rtol=1e-8), throw=False)
-        assert newton.converged, newton.describe()
+        assert newton.converged, (newton.describe(),
+                                  _rerun(prob, params, x0, NewtonKrylov(rtol=1e-8)))
         np.testing.assert_allclose(fire.x, newton.x, atol=1e-6)
         assert 0.5 < float(np.max(x)) < 1.0
     else:
@@ -160,11 +174,13 @@ def test_newton_starts_a_gent_membrane_whose_trial_bulges_pass_the_limit(disk, J
     prob, ref, x0 = disk
     params = _params(ref, Gent(mu=1 / 3, Jm=Jm), P=P)
     newton = equilibrium.solve(prob, params, x0, NewtonKrylov(rtol=1e-8), throw=False)
-    assert newton.converged and float(newton.stats.residual) < 1e-8, newton.describe()
+    assert newton.converged and float(newton.stats.residual) < 1e-8, (
+        newton.describe(), _rerun(prob, params, x0, NewtonKrylov(rtol=1e-8)))
     assert bool(assembly.stretch_admissible(newton.x, prob, params, assembly.prepare(prob, params)))
     fire = equilibrium.solve(prob, params, x0, FIRE(rtol=1e-8), throw=False)
     check = _op_by_op(prob, params, fire.x)   # (residual, admissible) outside the loop
-    assert fire.converged and check[0] < 2e-8 and check[1], (fire.describe(), check)
+    assert fire.converged and check[0] < 2e-8 and check[1], (
+        fire.describe(), check, _rerun(prob, params, x0, FIRE(rtol=1e-8)))
     np.testing.assert_allclose(newton.x, fire.x, atol=1e-6)
     lower = equilibrium.solve(prob, _params(ref, Gent(mu=1 / 3, Jm=Jm), P=0.5 * P), x0,
                               NewtonKrylov(rtol=1e-8), throw=False)
