@@ -112,9 +112,9 @@ class BarrierNewton:
     max_halvings: int = 30
     #: trial lengths of a Newton-Krylov step (1: no halving).  With 4, the stress suite's
     #: template (c) neo-Hookean valves at 1 and 10 MPa stopped short of 200 mmHg (stalls at
-    #: 180 and 101 mmHg): steps cut to 1/8 were accepted for small gains, each reset the
-    #: pseudo-time step, and the solve cycled at relative residuals of 7e-3 to 4e-2
-    #: (docs/barrier-contact.md)
+    #: 180 and 101 mmHg); logged step by step, the 10 MPa one accepted steps cut to 1/8
+    #: for small gains, each halving the pseudo-time step, and cycled at relative
+    #: residuals of 7e-3 to 4e-2 (docs/barrier-contact.md)
     exact_halvings: int = 1
     exact_below: float = 0.05
     krylov_rtol: float = 1e-2
@@ -438,7 +438,7 @@ def _line_search(model, topo, x, d, E, fp, res, scale, slope, exact, dhat, solve
     one that must be cut further is a poor model of the force, and the projected
     direction takes over (accepted after 30 halvings, such steps of 1e-9 left soft
     closures crawling at relative residuals of 1.4e-4 to 5.6e-4 for 70-130 iterations;
-    accepted after 3 halvings, steps of 1/8 with small gains kept stiff closures cycling
+    accepted after 3 halvings, steps of 1/8 with small gains kept a stiff closure cycling
     at relative residuals of 7e-3 to 4e-2, docs/barrier-contact.md).  Returns (accepted,
     alpha, a0, ccd fraction, (x, pairs, E, F, fp, res) at the accepted state, force
     evaluations)."""
