@@ -68,8 +68,11 @@ def test_a_soft_table4_valve_closes_by_the_barrier_fallback(valve):
     barrier law: converged, every check passed, no crossing by the exact test or by the
     IPC toolkit, and the report names the path and the failure before it."""
     pytest.importorskip("ipctk")
+    # FIRE's 3 mmHg closure of this valve takes 2942 steps: a cap of 3000 left it at
+    # 2.2e-4 where the compiled code rounded differently (LLVM level 0), so the cap here
+    # leaves room, and the failure the test names is the jump at 80 mmHg, not the cap
     rec, = S.run_group(valve, template="benchmark", mesh="regular", model="mass-spring",
-                       precision="float64", Es=(1.0,), Ps=(80.0,), max_steps=MAX_STEPS,
+                       precision="float64", Es=(1.0,), Ps=(80.0,), max_steps=4000,
                        case="table4", extra=dict(E1=0.18, E2=0.3, E3=1.2))
     assert rec.outcome == "converged", rec.cause
     assert rec.path == "newton+barrier" and rec.residual < 1e-4
