@@ -3,7 +3,8 @@
 On the CPU, XLA's newer fusion emitters (``xla_cpu_use_fusion_emitters``, on by default)
 make faster loops but spend more time compiling them.  For a program run a handful of
 times per optimisation (the smooth metrics with their gradient, the assembled tangent's
-blocks, the residual's VJP in the adjoint) the compile time is what the user waits for:
+blocks, the residual's VJP in the adjoint; once per solve, its independent recheck, the
+stall probe and the pair lists at its start) the compile time is what the user waits for:
 with the older emitters these compile 1.3-1.7x faster and run within 10 % of the same
 time (`benchmarks/quick_jit.py`).  The equilibrium solve, whose loop runs thousands of
 steps, keeps the default.  Other backends ignore the

@@ -60,6 +60,7 @@ import jax.numpy as jnp
 from ..vmap_control import batch_any, batch_max, cond_each
 from ..errors import NeighbourListOverflow, ParameterError
 from .geometry import point_triangle_distance_np
+from ..quick_jit import quick_jit
 
 __all__ = [
     "NeighbourList",
@@ -277,8 +278,7 @@ def default_grid_size(n_triangles: int, n_bodies: int = 1) -> int:
 
 
 # ---------------------------------------------------------------------------- building
-@functools.partial(jax.jit, static_argnames=("capacity", "scan_capacity", "n_bodies",
-                                             "grid_size"))
+@quick_jit(static_argnames=("capacity", "scan_capacity", "n_bodies", "grid_size"))
 def _build(x, triangles, body, cutoff, capacity, scan_capacity, n_bodies, grid_size):
     x = jnp.asarray(x)
     tri = jnp.asarray(triangles, dtype=jnp.int32)

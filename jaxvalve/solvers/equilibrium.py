@@ -23,6 +23,7 @@ from ..contact.soft_pairs import (SoftPairs, build_soft_pairs, default_soft_capa
                                  stale_soft_pairs)
 from ..contact.soft_pairs import refresh as refresh_soft
 from ..contact.neighbours import whole_lists as one_prefix
+from ..quick_jit import quick_jit
 from ..errors import ConvergenceError, NeighbourListOverflow, ParameterError
 from ..geometry.mesh import edge_lengths_np
 from ..mechanics.problem import Params, Problem, validate_params
@@ -85,9 +86,12 @@ def stale_pairs(contact, problem, x, skin=DEFAULT_SKIN):
     return stale_soft_pairs(base, default_soft_capacity(problem.n_nodes))
 
 
-@functools.partial(jax.jit, static_argnums=(4,))
+@quick_jit(static_argnums=(4,))
 def _build_soft(base, x, triangles, contact, capacity):
-    return build_soft_pairs(base, x, triangles, contact, capacity)
+    """The pruned pair list at a solve's start, compiled for compile time (it runs once
+    per solve): on the whole candidate list, with `quick_jit`'s CPU emitters."""
+    with one_prefix():
+        return build_soft_pairs(base, x, triangles, contact, capacity)
 
 
 @jax.jit
@@ -250,17 +254,21 @@ def _solve_compiled(blank, problem, params, x0, nbrs, skin, whole_lists, setting
         return _equilibrium(blank, problem, params, x0, nbrs, skin, settings)
 
 
-@functools.partial(jax.jit, static_argnums=(6,))
+@quick_jit(static_argnums=(6,))
 def _recheck(problem, params, x0, y, nbrs, delta, at_rest):
     """(relative residual, state sound) of a solve's result y (N, 3) mm, from a program of
     its own: the force, the residual scale (||F_pressure||, or ||F(x0)|| at rest, P = 0)
     and the stretch and finiteness checks evaluated afresh, none of them read from the
-    solver's loop."""
+    solver's loop.  The program runs once per solve, at one state, so it is compiled for
+    compile time: traced on the whole pair lists (`contact.neighbours.whole_lists`; the
+    solver's switch over list prefixes would only add branches) and with `quick_jit`'s
+    CPU emitters (`python benchmarks/recheck_compile.py`)."""
     ref = assembly.prepare(problem, params)
-    F = assembly.residual(y, problem, params, ref, nbrs, delta)
-    if at_rest:
-        scale = jnp.linalg.norm(assembly.residual(x0, problem, params, ref, nbrs, delta))
-    else:
+    with one_prefix():
+        F = assembly.residual(y, problem, params, ref, nbrs, delta)
+        if at_rest:
+            scale = jnp.linalg.norm(assembly.residual(x0, problem, params, ref, nbrs, delta))
+    if not at_rest:
         scale = assembly.pressure_scale(y, problem, params)
     res = jnp.linalg.norm(F) / jnp.where(scale > 0, scale, 1.0)
     sound = (assembly.stretch_admissible(y, problem, params, ref)

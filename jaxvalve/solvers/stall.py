@@ -27,6 +27,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..contact.neighbours import whole_lists
+from ..quick_jit import quick_jit
 from ..mechanics import assembly
 from . import equilibrium
 from ..valve.checks import FOLD_DEG, fold_angles
@@ -96,12 +98,15 @@ class StallReport:
                     precision=self.precision, cause=self.cause())
 
 
-@jax.jit
+@quick_jit
 def _terms(x, problem, params, nbrs):
-    """Elastic, bending, contact and pressure forces (4, N, 3), fixed rows zero."""
+    """Elastic, bending, contact and pressure forces (4, N, 3), fixed rows zero.  Run
+    twice per probe, so compiled for compile time: the contact on its whole pair lists
+    (`contact.neighbours.whole_lists`), with `quick_jit`'s CPU emitters."""
     ref = assembly.prepare(problem, params)
     el = -jax.grad(assembly.elastic_energy)(x, problem, params, ref)
-    cons, fp, fpc = assembly.force_parts(x, problem, params, ref, nbrs)
+    with whole_lists():
+        cons, fp, fpc = assembly.force_parts(x, problem, params, ref, nbrs)
     bare = params.replace(contact=None)
     no_contact = -jax.grad(assembly.conservative_energy)(x, problem, bare, ref)
     free = problem.free[:, None]
