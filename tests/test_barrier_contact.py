@@ -348,6 +348,29 @@ def test_additive_ccd_never_lets_triangles_cross(seed):
     assert ccd.max_step(x, -dx, pairs) == 1.0
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test_the_smallest_step_search_gives_the_minimum_of_every_pair(seed):
+    """`ccd.max_step` follows pairs only while they can still lower the smallest step
+    (``smallest=True``); the minimum is that of every pair followed to its own bound, and
+    no entry falls below it."""
+    rng = np.random.default_rng(seed)
+    x, tri, body = _two_sheets(n=5, gap=0.2)
+    x = x + 0.02 * rng.normal(size=x.shape)
+    dx = np.zeros_like(x)
+    dx[body == 1] = [0.1, -0.05, -0.6]
+    dx += 0.05 * rng.normal(size=x.shape)
+    topo = barrier_topology(tri, body, x[:, :2], np.zeros(len(x), bool), x,
+                            self_contact=False)
+    pairs = build_pairs(topo, x, 2.0 * np.abs(dx).max() * 2 + 0.3)
+    for kind, rows in (("pt", pairs.pt), ("ee", pairs.ee)):
+        every = ccd.additive_ccd(x[rows], dx[rows], kind)
+        fast = ccd.additive_ccd(x[rows], dx[rows], kind, smallest=True)
+        assert every.min() < 1.0 and fast.min() == every.min()
+        assert np.all(fast >= every.min()) and np.all(fast <= every)
+    assert ccd.max_step(x, dx, pairs) == min(
+        ccd.additive_ccd(x[r], dx[r], k).min() for k, r in (("pt", pairs.pt), ("ee", pairs.ee)))
+
+
 def test_barrier_contact_rejects_bad_parameters():
     with pytest.raises(ParameterError, match="dhat"):
         BarrierContact(dhat=0.0).validate()

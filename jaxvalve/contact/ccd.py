@@ -20,10 +20,15 @@ from .ipc_distance import point_triangle_distance2_np, segment_distance2_np
 __all__ = ["additive_ccd", "max_step"]
 
 
-def additive_ccd(x4, dx4, kind, s=0.1, max_iter=200):
-    """Largest safe fraction t in [0, 1] (K,) of the moves dx4 (K, 4, 3) for pairs at x4
+def additive_ccd(x4, dx4, kind, s=0.1, max_iter=200, cap=1.0, smallest=False):
+    """Largest safe fraction t in [0, cap] (K,) of the moves dx4 (K, 4, 3) for pairs at x4
     (K, 4, 3) mm: rows [p, t0, t1, t2] for kind "pt", [a0, a1, b0, b1] for kind "ee".
-    A pair still short of its bound after max_iter advances returns the safe t reached."""
+    A pair still short of its bound after max_iter advances returns the safe t reached.
+
+    smallest: only the smallest t is wanted (`max_step`): cap falls to the smallest t of
+    any pair that has stopped, and a pair is no longer advanced once its safe t reaches
+    cap (its own t can only be larger).  The minimum over the pairs is the same; the
+    other entries are then min(t, the final cap)."""
     x4 = np.asarray(x4, float)
     dx4 = np.asarray(dx4, float)
     K = x4.shape[0]
@@ -35,10 +40,10 @@ def additive_ccd(x4, dx4, kind, s=0.1, max_iter=200):
     speed = np.linalg.norm(rel, axis=2)
     lp = speed[:, :split].max(axis=1) + speed[:, split:].max(axis=1)
     d0 = np.sqrt(dist2(*(x4[:, k] for k in range(4))))
+    cap = float(cap)
     t = np.zeros(K)
-    out = np.ones(K)
+    out = np.full(K, cap)
     active = lp > 0
-    out[~active] = 1.0
     t_l = np.where(active, (1.0 - s) * d0 / np.where(active, lp, 1.0), 0.0)
     first = np.ones(K, bool)
     for _ in range(max_iter):
@@ -55,19 +60,23 @@ def additive_ccd(x4, dx4, kind, s=0.1, max_iter=200):
         # first advance that already falls below s d0: take it (t stays 0 otherwise)
         first_hit = idx[hit & first[idx]]
         out[first_hit] = tt[hit & first[idx]]
+        if smallest and idx[hit].size:
+            cap = min(cap, float(out[idx[hit]].min()))
         go = idx[~hit]
         t[go] = tt[~hit]
-        over = go[t[go] >= 1.0]
-        out[over] = 1.0
+        over = go[t[go] >= cap]
+        out[over] = cap
         first[idx] = False
         active[idx[hit]] = False
         active[over] = False
-        still = go[t[go] < 1.0]
-        t_l[still] = 0.9 * d[~hit][t[go] < 1.0] / lp[still]
+        if smallest:          # pairs whose safe t already reached the smallest stop
+            active &= t < cap
+        still = go[t[go] < cap]
+        t_l[still] = 0.9 * d[~hit][t[go] < cap] / lp[still]
     else:
         left = np.flatnonzero(active)
         out[left] = t[left]
-    return np.minimum(out, 1.0)
+    return np.minimum(out, cap)
 
 
 def max_step(x, dx, pairs, s=0.1):
@@ -80,5 +89,6 @@ def max_step(x, dx, pairs, s=0.1):
     t = 1.0
     for kind, rows in (("pt", pairs.pt), ("ee", pairs.ee)):
         if len(rows):
-            t = min(t, float(np.min(additive_ccd(x[rows], dx[rows], kind, s))))
+            t = min(t, float(np.min(additive_ccd(x[rows], dx[rows], kind, s, cap=t,
+                                                 smallest=True))))
     return t
