@@ -320,11 +320,9 @@ def test_pins_exclude_sewn_points_and_fixed_pairs():
     assert pairs.min_distance > 0
 
 
-@pytest.mark.parametrize("seed", range(4))
-def test_additive_ccd_never_lets_triangles_cross(seed):
-    """Random moves that drive two sheets through each other: the CCD step keeps every
-    distance positive along the whole move (checked densely with ipctk's distances), it is
-    at most the toolkit's time of impact, and a move away from contact is taken whole."""
+def _sheets_driven_through(seed):
+    """Two sheets 0.2 mm apart, jittered, and a random move (N, 3) that drives the second
+    through the first: (x, triangles, dx, the pair list that CCD needs for the move)."""
     rng = np.random.default_rng(seed)
     x, tri, body = _two_sheets(n=5, gap=0.2)
     x = x + 0.02 * rng.normal(size=x.shape)
@@ -333,7 +331,15 @@ def test_additive_ccd_never_lets_triangles_cross(seed):
     dx += 0.05 * rng.normal(size=x.shape)
     topo = barrier_topology(tri, body, x[:, :2], np.zeros(len(x), bool), x,
                             self_contact=False)
-    pairs = build_pairs(topo, x, 2.0 * np.abs(dx).max() * 2 + 0.3)
+    return x, tri, dx, build_pairs(topo, x, 2.0 * np.abs(dx).max() * 2 + 0.3)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_additive_ccd_never_lets_triangles_cross(seed):
+    """Random moves that drive two sheets through each other: the CCD step keeps every
+    distance positive along the whole move (checked densely with ipctk's distances), it is
+    at most the toolkit's time of impact, and a move away from contact is taken whole."""
+    x, tri, dx, pairs = _sheets_driven_through(seed)
     t = ccd.max_step(x, dx, pairs)
     assert 0.0 < t < 1.0
     mesh = ipctk.CollisionMesh(x, ipctk.edges(tri.astype(np.int32)), tri.astype(np.int32))
@@ -353,15 +359,7 @@ def test_the_smallest_step_search_gives_the_minimum_of_every_pair(seed):
     """`ccd.max_step` follows pairs only while they can still lower the smallest step
     (``smallest=True``); the minimum is that of every pair followed to its own bound, and
     no entry falls below it."""
-    rng = np.random.default_rng(seed)
-    x, tri, body = _two_sheets(n=5, gap=0.2)
-    x = x + 0.02 * rng.normal(size=x.shape)
-    dx = np.zeros_like(x)
-    dx[body == 1] = [0.1, -0.05, -0.6]
-    dx += 0.05 * rng.normal(size=x.shape)
-    topo = barrier_topology(tri, body, x[:, :2], np.zeros(len(x), bool), x,
-                            self_contact=False)
-    pairs = build_pairs(topo, x, 2.0 * np.abs(dx).max() * 2 + 0.3)
+    x, _, dx, pairs = _sheets_driven_through(seed)
     for kind, rows in (("pt", pairs.pt), ("ee", pairs.ee)):
         every = ccd.additive_ccd(x[rows], dx[rows], kind)
         fast = ccd.additive_ccd(x[rows], dx[rows], kind, smallest=True)
