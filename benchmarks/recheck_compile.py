@@ -9,8 +9,8 @@ traces it, a `lax.switch` over up to three prefixes of its pair list
 (`contact.neighbours.bucket_sizes`), or on the whole list (`contact.neighbours.whole_lists`),
 one branch.  A program that runs once only pays for the extra branches.
 
-One process per mesh size, the compilation cache off.  The benchmark valve is closed once
-(FIRE, the default scene at ``--pressure`` mmHg); then the recheck's residual program is
+One process, the compilation cache off.  For each mesh size the benchmark valve is closed
+once (FIRE, the default scene at ``--pressure`` mmHg; the table says whether it converged); then the recheck's residual program is
 lowered both ways at the closed state, alternately, and each lowered module compiled
 (``.compile()``, timed alone): the switch (as the recheck was traced before), the whole
 lists, and the whole lists with `jaxvalve.quick_jit`'s older CPU fusion emitters (as
@@ -74,7 +74,7 @@ def measure(h: float, pressure: float) -> dict:
     diff = max(float(np.max(np.abs(out["switch"] - out[k]))) for k in ("whole", "quick"))
     diff /= max(scale, 1e-300)
     return dict(h=h, nodes=int(valve.problem.n_nodes), converged=bool(sol.converged),
-                steps=int(sol.stats.steps), switch=min(secs["switch"]),
+                switch=min(secs["switch"]),
                 whole=min(secs["whole"]), quick=min(secs["quick"]), diff=diff)
 
 
@@ -83,6 +83,8 @@ def main(argv=None):
     ap.add_argument("--h", type=float, nargs="+", default=[2.0, 0.88])
     ap.add_argument("--pressure", type=float, default=3.0)
     args = ap.parse_args(argv)
+    if not (all(h > 0 for h in args.h) and args.pressure > 0):
+        ap.error(f"--h must be > 0 mm and --pressure > 0 mmHg; got {args.h}, {args.pressure}")
     print(f"# python benchmarks/recheck_compile.py --h {' '.join(map(str, args.h))} "
           f"--pressure {args.pressure:g}")
     print(f"# {platform_summary()}")

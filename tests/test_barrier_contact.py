@@ -358,15 +358,17 @@ def test_additive_ccd_never_lets_triangles_cross(seed):
 def test_the_smallest_step_search_gives_the_minimum_of_every_pair(seed):
     """`ccd.max_step` follows pairs only while they can still lower the smallest step
     (``smallest=True``); the minimum is that of every pair followed to its own bound, and
-    no entry falls below it."""
+    no entry falls below it.  A cap outside [0, 1] is refused."""
     x, _, dx, pairs = _sheets_driven_through(seed)
     for kind, rows in (("pt", pairs.pt), ("ee", pairs.ee)):
         every = ccd.additive_ccd(x[rows], dx[rows], kind)
         fast = ccd.additive_ccd(x[rows], dx[rows], kind, smallest=True)
         assert every.min() < 1.0 and fast.min() == every.min()
         assert np.all(fast >= every.min()) and np.all(fast <= every)
-    assert ccd.max_step(x, dx, pairs) == min(
-        ccd.additive_ccd(x[r], dx[r], k).min() for k, r in (("pt", pairs.pt), ("ee", pairs.ee)))
+    assert ccd.max_step(x, dx, pairs) == ccd.max_step(x, dx, pairs, smallest=False) < 1.0
+    for cap in (-0.1, 1.5, float("nan")):
+        with pytest.raises(ParameterError, match="cap must be a step fraction in"):
+            ccd.additive_ccd(x[pairs.pt], dx[pairs.pt], "pt", cap=cap)
 
 
 def test_barrier_contact_rejects_bad_parameters():

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..errors import ParameterError
 from .ipc_distance import point_triangle_distance2_np, segment_distance2_np
 
 __all__ = ["additive_ccd", "max_step"]
@@ -29,6 +30,9 @@ def additive_ccd(x4, dx4, kind, s=0.1, max_iter=200, cap=1.0, smallest=False):
     any pair that has stopped, and a pair is no longer advanced once its safe t reaches
     cap (its own t can only be larger).  The minimum over the pairs is the same; the
     other entries are then min(t, the final cap)."""
+    cap = float(cap)
+    if not 0.0 <= cap <= 1.0:
+        raise ParameterError(f"cap must be a step fraction in [0, 1]; got {cap!r}")
     x4 = np.asarray(x4, float)
     dx4 = np.asarray(dx4, float)
     K = x4.shape[0]
@@ -40,7 +44,6 @@ def additive_ccd(x4, dx4, kind, s=0.1, max_iter=200, cap=1.0, smallest=False):
     speed = np.linalg.norm(rel, axis=2)
     lp = speed[:, :split].max(axis=1) + speed[:, split:].max(axis=1)
     d0 = np.sqrt(dist2(*(x4[:, k] for k in range(4))))
-    cap = float(cap)
     t = np.zeros(K)
     out = np.full(K, cap)
     active = lp > 0
@@ -79,16 +82,17 @@ def additive_ccd(x4, dx4, kind, s=0.1, max_iter=200, cap=1.0, smallest=False):
     return np.minimum(out, cap)
 
 
-def max_step(x, dx, pairs, s=0.1):
+def max_step(x, dx, pairs, s=0.1, smallest=True):
     """Largest t in [0, 1] such that no pair of ``pairs`` (`ipc_pairs.BarrierPairs`) meets
     on the move x + t dx (x, dx (N, 3) mm).  The caller guarantees that the pairs hold
     every pair that can come within reach of each other on the move (a list built with
-    cutoff > 2 max |dx|)."""
+    cutoff > 2 max |dx|).  smallest: `additive_ccd`'s, for each kind of pair (False:
+    every pair followed to its own bound; the same t, `benchmarks/ccd_smallest.py`)."""
     x = np.asarray(x, float)
     dx = np.asarray(dx, float)
     t = 1.0
     for kind, rows in (("pt", pairs.pt), ("ee", pairs.ee)):
         if len(rows):
             t = min(t, float(np.min(additive_ccd(x[rows], dx[rows], kind, s, cap=t,
-                                                 smallest=True))))
+                                                 smallest=smallest))))
     return t
