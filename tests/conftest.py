@@ -63,39 +63,63 @@ def _load_stress_suite():
 _load_stress_suite()
 
 #: Test files by their measured time (seconds of one xdist worker, `pytest -n 2 --dist
-#: loadfile --durations=0`, summed over each file's setup and calls; the stress and
-#: closure-driver files as trimmed after that run), longest first.  With `--dist
-#: loadfile` the workers take whole files from a queue; xdist's default queue puts the
-#: files with the most tests first, which left the long files with few tests for the end,
-#: where one worker ran them alone.  Longest first (LPT) keeps both workers busy to the
-#: end.  Files not listed follow in their usual order.
+#: loadfile --durations=0`, summed over each file's setup and calls), longest first.  The
+#: workers take whole files (`SAME_WORKER`: whole groups of files) from a queue; xdist's
+#: default queue puts the files with the most tests first, which left the long files
+#: with few tests for the end, where one worker ran them alone.  Longest first (LPT)
+#: keeps both workers busy to the end.  Files not listed follow in their usual order.
 LONGEST_FIRST = (
-    "tests/stress/test_stress_special.py",   # 350
-    "tests/test_optimize.py",        # 139
-    "tests/test_patient_root.py",    # 131
-    "tests/test_solvers.py",         # 115
-    "tests/test_batch.py",           # 101
-    "tests/test_notebooks.py",       # 98
-    "tests/test_adjoint.py",         # 89
-    "tests/test_contact.py",         # 81
-    "tests/test_admissible_start.py",  # 80
-    "tests/test_soft_pairs.py",      # 72
-    "tests/test_design.py",          # 72
-    "tests/test_energies.py",        # 65
-    "tests/test_barrier_closure.py",  # 62
-    "tests/test_docs.py",            # 61
-    "tests/stress/test_stress_matrix.py",    # 53
+    "tests/stress/test_stress_special.py",   # 520
+    "tests/test_optimize.py",        # 195, with test_notebooks (SAME_WORKER)
+    "tests/test_patient_root.py",    # 200
+    "tests/test_adjoint.py",         # 133
+    "tests/test_barrier_closure.py",  # 128
+    "tests/test_design.py",          # 126
+    "tests/test_admissible_start.py",  # 124
+    "tests/test_batch.py",           # 121
+    "tests/test_soft_pairs.py",      # 121
+    "tests/test_contact.py",         # 120
+    "tests/test_solvers.py",         # 118
+    "tests/test_docs.py",            # 101
+    "tests/stress/test_stress_matrix.py",    # 81
+    "tests/test_notebooks.py",       # 175 alone; after test_optimize: SAME_WORKER
+    "tests/test_energies.py",        # 56
 )
 
+#: Files that run in the worker of another file, right after it, as one unit of the queue
+#: (``--dist loadgroup``, each file its own group otherwise): notebook 02 closes and
+#: optimises the valve of test_optimize's evaluator (h = 2.5 mm at 3 mmHg) and reuses its
+#: compiled programs there.  In different workers, or after a cache clear, it compiled
+#: 55.6 s of programs identical to test_optimize's (a throwaway plugin hashing every
+#: module XLA compiled).  test_notebooks releases them after notebook 02 (its fixture).
+SAME_WORKER = {"tests/test_notebooks.py": "tests/test_optimize.py"}
 
+
+def _file(item):
+    return item.nodeid.split("::")[0]
+
+
+@pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(session, config, items):
-    """Order the files longest first (`LONGEST_FIRST`); the order inside a file is kept.
-    Every test of a `LONGEST_FIRST` file is marked ``slow``: ``pytest -m "not slow"`` is
-    the fast tier for development (docs/development.md); the CI runs all."""
+    """Order the files longest first (`LONGEST_FIRST`, a `SAME_WORKER` file right after
+    its partner); the order inside a file is kept.  Each test is put in its file's xdist
+    group (``--dist loadgroup`` then gives each worker whole files, or whole
+    `SAME_WORKER` groups).  Every test of a `LONGEST_FIRST` file is marked ``slow``:
+    ``pytest -m "not slow"`` is the fast tier for development (docs/development.md); the
+    CI runs all."""
     rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
-    items.sort(key=lambda it: rank.get(it.nodeid.split("::")[0], len(rank)))
+    last = len(rank)
+
+    def key(it):
+        f = _file(it)
+        lead = SAME_WORKER.get(f)
+        return (rank.get(lead, last), 1, rank.get(f, last)) if lead else (rank.get(f, last), 0, 0)
+
+    items.sort(key=key)
     for it in items:
-        if it.nodeid.split("::")[0] in rank:
+        f = _file(it)
+        it.add_marker(pytest.mark.xdist_group(SAME_WORKER.get(f, f)))
+        if f in rank:
             it.add_marker(pytest.mark.slow)
 
 

@@ -19,12 +19,6 @@ from optimize.objective import chord
 BASE = (12.0, 7.1, 15.0)
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _release_compiled():
-    yield
-    jax.clear_caches()
-
-
 def test_targets_parse_and_penalise():
     t = parse_target("h_c >= 4")
     assert (t.metric, t.lower, t.upper, t.value) == ("h_c", 4.0, None, None)

@@ -106,23 +106,33 @@ class BarrierContact:
                 + jnp.sum(ee_energies(self, x, ee, ee_w, ee_eps)))
 
 
-def collision_weights(ref, triangles, tri_edge, n_edges):
+def collision_weights(ref, triangles, tri_edge, n_edges, xp=jnp):
     """(node_w (N,) mm^2, edge_w (E,) mm^2, edge_len2 (E,) mm^2) of the reference
     coordinates ref (N, 2|3) mm: a node's weight a_p / 2 (a_p a third of the area of its
     triangles), an edge's A_e / 4 (A_e a third of the area of the triangles at it), and
     the edges' squared rest lengths (the mollifier's thresholds).  triangles (M, 3),
     tri_edge (M, 3) the edge row of each triangle's edge k (opposite vertex k,
     `mesh.unique_edges`).  Differentiable in ref (the optimiser's adjoint: the weights
-    move with the template)."""
-    X = ref if ref.shape[1] == 3 else jnp.concatenate([ref, jnp.zeros_like(ref[:, :1])], 1)
+    move with the template).  xp: the array module, jax.numpy or numpy (the host's
+    topology, where jax.numpy would compile a program for each operation of each mesh)."""
+    X = ref if ref.shape[1] == 3 else xp.concatenate([ref, xp.zeros_like(ref[:, :1])], 1)
     Y = X[triangles]
-    area = 0.5 * jnp.linalg.norm(jnp.cross(Y[:, 1] - Y[:, 0], Y[:, 2] - Y[:, 0]), axis=1)
-    third = jnp.repeat(area[:, None] / 3.0, 3, axis=1)
-    node_a = jnp.zeros(X.shape[0], X.dtype).at[triangles].add(third)
-    edge_a = jnp.zeros(n_edges, X.dtype).at[tri_edge].add(third)
+    area = 0.5 * xp.linalg.norm(xp.cross(Y[:, 1] - Y[:, 0], Y[:, 2] - Y[:, 0]), axis=1)
+    third = xp.repeat(area[:, None] / 3.0, 3, axis=1)
     # edge k of a triangle joins its vertices k+1 and k+2
     d = Y[:, [2, 0, 1]] - Y[:, [1, 2, 0]]
-    len2 = jnp.zeros(n_edges, X.dtype).at[tri_edge].set(jnp.sum(d * d, axis=-1))
+    d2 = xp.sum(d * d, axis=-1)
+    if xp is np:
+        node_a = np.zeros(X.shape[0], X.dtype)
+        np.add.at(node_a, triangles, third)
+        edge_a = np.zeros(n_edges, X.dtype)
+        np.add.at(edge_a, tri_edge, third)
+        len2 = np.zeros(n_edges, X.dtype)
+        len2[tri_edge] = d2
+    else:
+        node_a = jnp.zeros(X.shape[0], X.dtype).at[triangles].add(third)
+        edge_a = jnp.zeros(n_edges, X.dtype).at[tri_edge].add(third)
+        len2 = jnp.zeros(n_edges, X.dtype).at[tri_edge].set(d2)
     return node_a / 2.0, edge_a / 4.0, len2
 
 

@@ -110,7 +110,8 @@ def _segment_params(xp, ea0, ea1, eb0, eb1, rel_tol=1e-10):
     """Clamped closest-point parameters (s, t) in [0, 1] of two segments (Ericson 2005,
     sec. 5.1.9), for the array module xp (jax.numpy or numpy).  Nearly parallel edges
     (|u x v|^2 <= rel_tol |u|^2 |v|^2) take s = 0."""
-    dot = lambda a, b: xp.sum(a * b, axis=-1)
+    dot = ((lambda a, b: np.einsum("...i,...i->...", a, b)) if xp is np
+           else (lambda a, b: xp.sum(a * b, axis=-1)))
     u, v, r = ea1 - ea0, eb1 - eb0, ea0 - eb0
     a, e, f = dot(u, u), dot(v, v), dot(v, r)
     c, b = dot(u, r), dot(u, v)

@@ -125,7 +125,7 @@ def barrier_topology(triangles, body, ref, fixed, x0, pin_tol=1e-9,
     n = body.shape[0]
     edges, tri_edge = unique_edges(tri)
     edges, tri_edge = edges.astype(np.int64), tri_edge.astype(np.int64)
-    node_w, edge_w, len2 = map(np.asarray, collision_weights(ref, tri, tri_edge, len(edges)))
+    node_w, edge_w, len2 = collision_weights(ref, tri, tri_edge, len(edges), xp=np)
     pin = np.full(n, -1, np.int64)
     idx = np.flatnonzero(fixed)
     if idx.size:
@@ -260,7 +260,8 @@ def build_pairs(topo: BarrierTopology, x, cutoff: float, dx=None) -> BarrierPair
         other[i] = True
     node, t, lim = node[other], t[other], lim[other]
     # a node is no nearer a triangle than its distance to the centroid less the radius
-    near = np.linalg.norm(x[node] - cen[t], axis=1) - rad_t[t] < lim
+    rel = x[node] - cen[t]
+    near = np.einsum("ij,ij->i", rel, rel) < (lim + rad_t[t]) ** 2
     node, t, lim = node[near], t[near], lim[near]
     rows = np.column_stack([node, tri[t]])
     keep = ~(topo.fixed[node] & np.all(topo.fixed[tri[t]], axis=1))
@@ -270,29 +271,23 @@ def build_pairs(topo: BarrierTopology, x, cutoff: float, dx=None) -> BarrierPair
                                      x[rows[:, 3]])
     sel = d2 < lim * lim
     pt, pt_d2 = rows[sel], d2[sel]
-    # edge-edge: each body's edges against the edges of the bodies after it
+    # edge-edge: every pair of edges whose midpoints are within cutoff + 2 max half-length
+    # (one k-d tree query, pairs i < j), of different bodies or, with self-contact, of one
     mid = 0.5 * (x[edges[:, 0]] + x[edges[:, 1]])
     half_e = 0.5 * np.linalg.norm(x[edges[:, 1]] - x[edges[:, 0]], axis=1)      # (E,)
     half = float(half_e.max())
-    out = []
-    for b in np.unique(topo.edge_body):
-        mine = np.flatnonzero(topo.edge_body == b)
-        later = np.flatnonzero(topo.edge_body > b)
-        c = _ball_pairs(mid[mine], mid[later], cutoff + 2 * half)
-        out.append(np.column_stack([mine[c[:, 1]], later[c[:, 0]]]))
-    n_other = sum(len(c) for c in out)
-    if topo.self_contact:            # within each body: apart in the template (below)
-        out += [np.sort(mine[cKDTree(mid[mine]).query_pairs(cutoff + 2 * half,
-                                                            output_type="ndarray")], axis=1)
-                for mine in (np.flatnonzero(topo.edge_body == b)
-                             for b in np.unique(topo.edge_body))]
-    ea_eb = np.concatenate([np.zeros((0, 2), np.int64)] + out)
-    own = np.arange(len(ea_eb)) >= n_other
+    ea_eb = cKDTree(mid).query_pairs(cutoff + 2 * half, output_type="ndarray")
+    ea_eb = ea_eb.reshape(-1, 2).astype(np.int64)
+    own = topo.edge_body[ea_eb[:, 0]] == topo.edge_body[ea_eb[:, 1]]
+    if not topo.self_contact:
+        ea_eb, own = ea_eb[~own], own[~own]
     # two edges are no nearer than their midpoints' distance less their half-lengths
-    lb = (np.linalg.norm(mid[ea_eb[:, 0]] - mid[ea_eb[:, 1]], axis=1)
-          - half_e[ea_eb[:, 0]] - half_e[ea_eb[:, 1]])
-    near = lb < cutoff
-    ea_eb, own, lb = ea_eb[near], own[near], lb[near]
+    dm = mid[ea_eb[:, 0]] - mid[ea_eb[:, 1]]
+    dm2 = np.einsum("ij,ij->i", dm, dm)
+    reach_ab = half_e[ea_eb[:, 0]] + half_e[ea_eb[:, 1]]
+    near = dm2 < (cutoff + reach_ab) ** 2
+    ea_eb, own = ea_eb[near], own[near]
+    lb = np.sqrt(dm2[near]) - reach_ab[near]
     lim = np.full(len(ea_eb), cutoff)
     if topo.self_contact:
         i = np.flatnonzero(own)

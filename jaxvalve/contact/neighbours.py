@@ -480,6 +480,13 @@ def build_neighbours(x, triangles, body, cutoff, capacity: int,
     return _build(x, triangles, body, cutoff, capacity, scan_capacity, nb, grid_size)
 
 
+def filled(shape, value, dtype) -> jax.Array:
+    """An array of ``shape`` full of ``value``, made on the host and put on the device:
+    `jnp.full` would compile a program for each new shape (the empty lists of each mesh:
+    14 s of the test suite's run went to compiling such one-line programs)."""
+    return jnp.asarray(np.full(shape, value, np.dtype(dtype)), dtype=dtype)
+
+
 def stale_list(n_nodes: int, triangles, body, cutoff, capacity: int | None = None,
                dtype=jnp.float64) -> NeighbourList:
     """An empty list with the capacities `build_neighbours` would use, that `update`
@@ -492,13 +499,13 @@ def stale_list(n_nodes: int, triangles, body, cutoff, capacity: int | None = Non
     nb = _static_n_bodies(body, None)
     capacity = _round_up(max(int(capacity or default_capacity(n_nodes)), ROW_WIDTH), ROW_WIDTH)
     R = capacity // ROW_WIDTH
-    i32 = jnp.int32
-    zero = jnp.zeros((), i32)
+    i32 = np.int32
+    zero = filled((), 0, i32)
     return NeighbourList(
-        cand=jnp.full((R, ROW_WIDTH), m, i32), row_group=jnp.full((R,), R - 1, i32),
-        group_node=jnp.full((R,), n_nodes, i32), group_row=jnp.zeros((R,), i32),
-        x_build=jnp.full((n_nodes, 3), jnp.inf, dtype), cutoff=jnp.asarray(cutoff, dtype),
-        overflow=jnp.zeros((), bool), count=zero, n_rows=zero, n_pairs=zero, n_scan=zero,
+        cand=filled((R, ROW_WIDTH), m, i32), row_group=filled((R,), R - 1, i32),
+        group_node=filled((R,), n_nodes, i32), group_row=filled((R,), 0, i32),
+        x_build=filled((n_nodes, 3), np.inf, dtype), cutoff=jnp.asarray(cutoff, dtype),
+        overflow=filled((), False, bool), count=zero, n_rows=zero, n_pairs=zero, n_scan=zero,
         max_group_count=zero, capacity=capacity,
         scan_capacity=default_scan_capacity(capacity), n_bodies=nb,
         grid_size=max(default_grid_size(m, nb), 64 * nb + 8), n_triangles=m)

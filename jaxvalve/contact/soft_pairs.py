@@ -30,10 +30,11 @@ import functools
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ..vmap_control import cond_each
 from .geometry import point_triangle_distance_soa
-from .neighbours import NeighbourList, bucket_index, bucket_sizes, needs_rebuild
+from .neighbours import NeighbourList, bucket_index, bucket_sizes, filled, needs_rebuild
 from .neighbours import update as update_verlet
 
 __all__ = ["SoftPairs", "PRUNE_REACH", "DEFAULT_MARGIN", "build_soft_pairs", "refresh",
@@ -159,12 +160,12 @@ def stale_soft_pairs(base: NeighbourList, capacity: int, margin=None) -> SoftPai
     `neighbours.stale_list` as base, both levels are built inside the solve)."""
     n = base.x_build.shape[0]
     dtype = base.x_build.dtype
-    zero = jnp.zeros((), jnp.int32)
-    return SoftPairs(base=base, tri=jnp.full((capacity,), base.n_triangles, jnp.int32),
-                     group=jnp.zeros((capacity,), jnp.int32), n=zero,
-                     x_build=jnp.full((n, 3), jnp.inf, dtype),
+    zero = filled((), 0, jnp.int32)
+    return SoftPairs(base=base, tri=filled((capacity,), base.n_triangles, jnp.int32),
+                     group=filled((capacity,), 0, jnp.int32), n=zero,
+                     x_build=filled((n, 3), np.inf, dtype),
                      margin=jnp.asarray(DEFAULT_MARGIN if margin is None else margin, dtype),
-                     soft_overflow=jnp.zeros((), bool), soft_count=zero,
+                     soft_overflow=filled((), False, bool), soft_count=zero,
                      soft_capacity=int(capacity))
 
 
