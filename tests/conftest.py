@@ -86,25 +86,41 @@ LONGEST_FIRST = (
     "tests/test_energies.py",        # 56
 )
 
-#: Files that run in the worker of another file, right after it, as one unit of the queue
-#: (``--dist loadgroup``, each file its own group otherwise): notebook 02 closes and
-#: optimises the valve of test_optimize's evaluator (h = 2.5 mm at 3 mmHg) and reuses its
-#: compiled programs there.  In different workers, or after a cache clear, it compiled
-#: 55.6 s of programs identical to test_optimize's (a throwaway plugin hashing every
-#: module XLA compiled).  test_notebooks releases them after notebook 02 (its fixture).
+#: Files that run in the worker of another file, right after it, as one unit of the
+#: queue (`pytest_xdist_make_scheduler`): notebook 02 closes and optimises the valve of
+#: test_optimize's evaluator (h = 2.5 mm at 3 mmHg) and reuses its compiled programs
+#: there.  In different workers, or after a cache clear, it compiled 55.6 s of programs
+#: identical to test_optimize's (a throwaway plugin hashing every module XLA compiled).
+#: test_notebooks releases them after notebook 02 (its fixture).
 SAME_WORKER = {"tests/test_notebooks.py": "tests/test_optimize.py"}
+
+
+@pytest.hookimpl(tryfirst=True, optionalhook=True)
+def pytest_xdist_make_scheduler(config, log):
+    """``--dist loadfile`` with `SAME_WORKER`: whole files go to the workers, a
+    `SAME_WORKER` file with its partner's.  (xdist's own ``loadgroup`` would do this by
+    marks, but with pytest 9.2 and xdist 3.8 it silently sends each test on its own: it
+    renames the items through an attribute that pytest 9.2 no longer reads.)"""
+    if config.getvalue("dist") != "loadfile":
+        return None
+    from xdist.scheduler import LoadFileScheduling
+
+    class _SameWorker(LoadFileScheduling):
+        def _split_scope(self, nodeid):
+            f = nodeid.split("::", 1)[0]
+            return SAME_WORKER.get(f, f)
+
+    return _SameWorker(config, log)
 
 
 def _file(item):
     return item.nodeid.split("::")[0]
 
 
-@pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(session, config, items):
     """Order the files longest first (`LONGEST_FIRST`, a `SAME_WORKER` file right after
-    its partner); the order inside a file is kept.  Each test is put in its file's xdist
-    group (``--dist loadgroup`` then gives each worker whole files, or whole
-    `SAME_WORKER` groups).  Every test of a `LONGEST_FIRST` file is marked ``slow``:
+    its partner); the order inside a file is kept.  Every test of a `LONGEST_FIRST` file
+    is marked ``slow``:
     ``pytest -m "not slow"`` is the fast tier for development (docs/development.md); the
     CI runs all."""
     rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
@@ -117,9 +133,7 @@ def pytest_collection_modifyitems(session, config, items):
 
     items.sort(key=key)
     for it in items:
-        f = _file(it)
-        it.add_marker(pytest.mark.xdist_group(SAME_WORKER.get(f, f)))
-        if f in rank:
+        if _file(it) in rank:
             it.add_marker(pytest.mark.slow)
 
 
