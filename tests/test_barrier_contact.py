@@ -9,7 +9,8 @@ ipctk = pytest.importorskip("ipctk")
 
 from jaxvalve.contact import ccd  # noqa: E402
 from jaxvalve.contact import ipc_distance as D  # noqa: E402
-from jaxvalve.contact.barrier import BarrierContact, barrier, ee_energies, pt_energies  # noqa: E402
+from jaxvalve.contact.barrier import (BarrierContact, barrier, collision_weights,  # noqa: E402
+                                      ee_energies, pt_energies)
 from jaxvalve.contact.ipc_pairs import barrier_topology, build_pairs, pair_distances2  # noqa: E402
 from jaxvalve.errors import ParameterError  # noqa: E402
 
@@ -412,3 +413,27 @@ def test_pair_kernels_sum_row_gradients_onto_nodes_and_compile_once_for_any_mesh
         sizes.append((B._pt_rows_value_grad._cache_size(),
                       B._ee_rows_value_grad._cache_size()))
     assert sizes[1] == sizes[0]
+
+
+def test_collision_weights_on_the_host_equal_the_traced_ones_and_sum_to_the_area():
+    """The barrier topology's weights come from NumPy (`collision_weights(..., xp=np)`),
+    the adjoint's from JAX: the same function, the same values.  A node's weights are
+    half a third of its triangles' area and an edge's a quarter of a third of the area at
+    it, so they sum to A / 2 and A / 4, A the sheet's area; the squared rest lengths are
+    the edges'."""
+    from jaxvalve.geometry.mesh import unique_edges
+    g = np.linspace(0.0, 2.0, 4)
+    ref = np.stack(np.meshgrid(g, 0.5 * g), -1).reshape(-1, 2)          # 2 x 1 mm sheet
+    k = np.arange(16).reshape(4, 4)[:-1, :-1].ravel()
+    tri = np.concatenate([np.stack([k, k + 1, k + 5], 1), np.stack([k, k + 5, k + 4], 1)])
+    edges, tri_edge = unique_edges(tri)
+    host = collision_weights(ref, tri, tri_edge, len(edges), xp=np)
+    traced = collision_weights(jnp.asarray(ref), jnp.asarray(tri), jnp.asarray(tri_edge),
+                               len(edges))
+    for a, b in zip(host, traced):
+        assert isinstance(a, np.ndarray)
+        np.testing.assert_allclose(a, np.asarray(b), rtol=1e-14, atol=1e-15)
+    assert host[0].sum() == pytest.approx(0.5 * 2.0, rel=1e-14)
+    assert host[1].sum() == pytest.approx(0.25 * 2.0, rel=1e-14)
+    lengths = np.sum((ref[edges[:, 1]] - ref[edges[:, 0]]) ** 2, axis=1)
+    np.testing.assert_allclose(host[2], lengths, rtol=1e-14)

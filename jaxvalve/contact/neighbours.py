@@ -482,8 +482,8 @@ def build_neighbours(x, triangles, body, cutoff, capacity: int,
 
 def filled(shape, value, dtype) -> jax.Array:
     """An array of ``shape`` full of ``value``, made on the host and put on the device:
-    `jnp.full` would compile a program for each new shape (the empty lists of each mesh:
-    14 s of the test suite's run went to compiling such one-line programs)."""
+    `jnp.full` would trace and compile a program for each new shape (the empty lists of
+    each mesh: 14 s of the test suite's Python time, in a profile of the suite)."""
     return jnp.asarray(np.full(shape, value, np.dtype(dtype)), dtype=dtype)
 
 
