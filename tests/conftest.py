@@ -124,9 +124,8 @@ def _file(item):
 def pytest_collection_modifyitems(session, config, items):
     """Order the files longest first (`LONGEST_FIRST`, a `SAME_WORKER` file right after
     its partner); the order inside a file is kept.  Every test of a `LONGEST_FIRST` file
-    is marked ``slow``:
-    ``pytest -m "not slow"`` is the fast tier for development (docs/development.md); the
-    CI runs all."""
+    is marked ``slow``: ``pytest -m "not slow"`` is the fast tier for development
+    (docs/development.md); the CI runs all."""
     rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
     last = len(rank)
 

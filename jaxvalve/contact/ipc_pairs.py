@@ -272,7 +272,8 @@ def build_pairs(topo: BarrierTopology, x, cutoff: float, dx=None) -> BarrierPair
     sel = d2 < lim * lim
     pt, pt_d2 = rows[sel], d2[sel]
     # edge-edge: every pair of edges whose midpoints are within cutoff + 2 max half-length
-    # (one k-d tree query, pairs i < j), of different bodies or, with self-contact, of one
+    # (one k-d tree query, pairs i < j), of different bodies or, with self-contact (the
+    # valve's setting), of one; without it the pairs of one body are listed and dropped
     mid = 0.5 * (x[edges[:, 0]] + x[edges[:, 1]])
     half_e = 0.5 * np.linalg.norm(x[edges[:, 1]] - x[edges[:, 0]], axis=1)      # (E,)
     half = float(half_e.max())
