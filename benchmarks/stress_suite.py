@@ -621,6 +621,22 @@ def pass_rate(records, precision: str = "float64") -> str:
             f"{row['limit']} = {good} of {row['tried']} runs ({100 * good / row['tried']:.1f} %)")
 
 
+#: the stall probe's verdicts (`jaxvalve.solvers.stall.StallReport.cause`), by a phrase
+#: of each
+STALL_VERDICTS = (("at its rounding floor", "is at the rounding floor of"),
+                  ("on a jump of the force", "is discontinuous at node"),
+                  ("slow", "the solve is slow, not stuck"))
+
+
+def stall_verdict(cause: str) -> str | None:
+    """The stall probe's verdict named in a run's ``cause`` (`STALL_VERDICTS`), the first
+    where it names several (the run's own; a failed path's follows in brackets), or
+    None."""
+    found = [(cause.find(phrase), name) for name, phrase in STALL_VERDICTS
+             if phrase in cause]
+    return min(found)[1] if found else None
+
+
 def format_table(records) -> str:
     """The pass table (per model x precision) and the list of non-converged runs."""
     t = summarise(records)
@@ -654,6 +670,16 @@ def format_table(records) -> str:
             causes[r.result] = causes.get(r.result, 0) + 1
     lines += ["", "Results of the runs that did not converge: "
               + ", ".join(f"{k} {v}" for k, v in sorted(causes.items(), key=lambda kv: -kv[1]))]
+    verdicts = {}
+    for r in records:
+        v = stall_verdict(r.cause) if r.outcome != "converged" else None
+        if v is not None:
+            key = (r.precision, v + (" (leaflets crossing)" if r.crossings > 0 else ""))
+            verdicts[key] = verdicts.get(key, 0) + 1
+    if verdicts:
+        lines += ["", "The stall probe's verdict on the runs that stopped short "
+                  "(`jaxvalve.solvers.stall`): " + ", ".join(
+                      f"{p} {v} {n}" for (p, v), n in sorted(verdicts.items()))]
     lims = [r for r in records if r.result == "limit_point" and r.outcome == "reported"]
     if lims:
         lines += ["", "Limit points and the inflation analysis "

@@ -62,9 +62,10 @@ class Scene:
     bending: plate bending stiffness as a multiple of the physical D = E H^3 / (12 (1 -
     nu^2)) (`jaxvalve.mechanics.bending`); 0 gives the specified pure membrane.
     precision: the floating type of the solve, "float64" (default) or "float32" (states,
-    parameters and forces; the metrics are always measured in float64).  float32 forces
-    carry rounding near 1e-4 of ||F_pressure|| at 3 mmHg, so a float32 closure may stop
-    short of rtol = 1e-4 there (docs/benchmark-notes.md, "Run time against error").
+    parameters and forces; the metrics are always measured in float64).  The float32
+    spacing of the positions costs 2e-4 to 5e-3 of ||F_pressure|| at 3 mmHg (E = 0.1-20
+    MPa, h = 2 mm), so a float32 closure stops short of rtol = 1e-4 there, reported as at
+    its rounding floor (`jaxvalve.solvers.stall`; docs/known-limits.md).
     fallback: where a closure on the smooth law fails (anything but a limit point), close
     the valve again on the barrier law by projected Newton (`jaxvalve.valve.closure`,
     "Fallback"; float64 only).  The reports name the path that closed each load.

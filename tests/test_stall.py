@@ -48,9 +48,13 @@ def test_a_continuous_force_is_reported_as_a_slow_solve():
         assert rep.force > 0.05 and "continuous" in rep.cause()
 
 
-def test_a_residual_below_the_float32_rounding_floor_is_named_as_such():
+@pytest.mark.parametrize("E", [0.1, 1.0])
+def test_a_residual_below_the_float32_rounding_floor_is_named_as_such(E):
     """An equilibrium solved to 1e-11 in float64: in float32 its residual force lies far
-    below the rounding floor (eps32 times the cancelling terms), in float64 above its own."""
+    below the rounding floor, in float64 above its own.  The floor's arithmetic part is
+    eps times the cancelling terms; its state part is what the float32 grid of positions
+    costs: the float64 residual force at the equilibrium rounded to float32 (the grid's
+    nearest point, not the probe's random one) lies within a factor 3 of it."""
     import jax.numpy as jnp
     from jaxvalve.solvers import equilibrium
     from jaxvalve.geometry import meshgen
@@ -59,14 +63,20 @@ def test_a_residual_below_the_float32_rounding_floor_is_named_as_such():
     from jaxvalve.solvers import NewtonKrylov
     p, t, b = meshgen.disk(5.0, 2)
     prob, ref = make_problem(p, t, fixed=b)
-    params = Params(ref=ref, material=NeoHookean(0.1), thickness=0.3, pressure=mmhg(80.0))
+    params = Params(ref=ref, material=NeoHookean(E), thickness=0.3, pressure=mmhg(80.0))
     sol = equilibrium.solve(prob, params, jnp.asarray(meshgen.lift(p)), NewtonKrylov(rtol=1e-11))
     r32 = stall.probe(prob, params, sol.x, precision="float32")
     r64 = stall.probe(prob, params, sol.x, precision="float64")
     assert r32.force == r64.force and not r32.jumped
-    assert r32.floor / r64.floor == pytest.approx(np.finfo(np.float32).eps
-                                                  / np.finfo(np.float64).eps)
+    assert r32.floor_arithmetic / r64.floor_arithmetic == pytest.approx(
+        np.finfo(np.float32).eps / np.finfo(np.float64).eps)
+    # a move within half a float64 spacing rounds back to the same float64 positions
+    assert r64.floor_state == 0.0 and r32.floor_state > r32.floor_arithmetic / 10
+    rounded = np.asarray(sol.x).astype(np.float32).astype(np.float64)
+    at_grid = stall.probe(prob, params, jnp.asarray(rounded)).force
+    assert r32.floor_state / 3 < at_grid < 3 * r32.floor_state
     assert r32.at_floor and "rounding floor of float32" in r32.cause()
+    assert "spacing of its positions" in r32.cause()
     assert not r64.at_floor and "slow" in r64.cause()
 
 
