@@ -30,6 +30,16 @@ def _norm(v, xp):
     return xp.where(pos, xp.sqrt(xp.where(pos, s, 1.0)), 0.0)
 
 
+def _spread3(v, xp):
+    """max - min over the last axis of v (..., 3), as half the sum of the three pairwise
+    differences' magnitudes: the same number, with a gradient that is 0 where the three
+    are equal.  (Through max and min reductions, the gradient of the smooth h_E and h_c
+    at triangles whose three step values tie came out NaN when compiled at XLA's LLVM
+    optimisation level 0, while finite at the default level.)"""
+    a, b, c = v[..., 0], v[..., 1], v[..., 2]
+    return 0.5 * (xp.abs(a - b) + xp.abs(b - c) + xp.abs(c - a))
+
+
 def central_index(topo):
     """Flat index arrays of all candidates over all triples (i; j, k), as a tuple
     (nodes (Qn,), nodes' j, k; edges (Qe, 2), edges' j, k; tris (Qt, 3), tris' j, k)."""
@@ -92,8 +102,7 @@ def central_candidates(x, phi, index, eps, xp):
                   eps, xp)
         hy_e = H2[: 2 * e].reshape(2, e)
         inside = xp.prod(H2[2 * e:].reshape(t, 3), axis=-1)
-    cut = ((xp.max(hx, axis=-1) - xp.min(hx, axis=-1))
-           * (xp.max(hy, axis=-1) - xp.min(hy, axis=-1)))     # both level lines cross T
+    cut = _spread3(hx, xp) * _spread3(hy, xp)             # both level lines cross T
     pts = xp.concatenate([x[nodes], pe.reshape(-1, 3), pt])
     wts = xp.concatenate([hn_j * hn_k, (xp.abs(ha - hb) * hy_e).ravel(),
                           xp.where(ok, cut * inside, 0.0)])
