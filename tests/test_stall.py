@@ -105,6 +105,8 @@ def test_a_barrier_solve_stopped_at_the_fold_bound_names_the_folded_edge(theta):
         cause = stall.stopped_cause(prob, params, result, x, skin=0.5)
         assert cause is not None and "nodes 0 and 1" in cause, cause
         assert f"{theta:.2f} degrees" in cause and "150-degree bound" in cause
+        # with self-contact no line search bounds the fold: not the cause
+        assert stall.stopped_cause(prob, params, result, x, skin=0.5, fold_bound=False) is None
     assert stall.stopped_cause(prob, params, "successful", x, skin=0.5) is None
     _, _, x120 = _hinge(120.0)
     assert stall.stopped_cause(prob, params, "stagnation", x120, skin=0.5) is None

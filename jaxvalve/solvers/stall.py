@@ -192,20 +192,24 @@ def fold_bound_cause(problem, x):
             "bending resists less the more it is folded past 90 degrees)")
 
 
-def stopped_cause(problem, params, result: str, x, *, skin, precision="float64"):
+def stopped_cause(problem, params, result: str, x, *, skin, precision="float64",
+                  fold_bound=True):
     """`probe`'s verdict (a line) on a solve of ``problem`` under ``params`` that stopped
     short of equilibrium at its step cap or stagnated (``result`` 'max_steps_reached' or
     'stagnation') in state x (N, 3) mm, evaluated in float64; on the barrier law (solved
-    by its own Newton), `fold_bound_cause`.  None for any other result, for non-finite x,
-    for the paper's law (no pointwise ``energy``) and for a barrier solve that stopped
-    away from the fold bound."""
+    by its own Newton), `fold_bound_cause` where its line search bounds folds
+    (``fold_bound``: the barrier without self-contact, `BarrierTopology.self_contact`).
+    None for any other result, for non-finite x, for the paper's law (no pointwise
+    ``energy``) and for a barrier solve that stopped away from the fold bound or had none
+    (with self-contact an edge may fold past 150 degrees: the soft StVK valve of template
+    (c) at 0.1 MPa stopped at 200 mmHg with one at 175 degrees)."""
     contact = params.contact
     if result not in ("max_steps_reached", "stagnation"):
         return None
     if not np.all(np.isfinite(np.asarray(x))):
         return None
     if getattr(contact, "barrier", False):
-        return fold_bound_cause(problem, x)
+        return fold_bound_cause(problem, x) if fold_bound else None
     if not (contact is None or hasattr(contact, "energy")):
         return None
     p64 = jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float64), params)

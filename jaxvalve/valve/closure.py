@@ -194,7 +194,9 @@ def close_load(valve, scene: Scene, pressure: float, x0, *, p_from: float = 0.0,
     status = RESULTS.successful.name if rr.converged else rr.status
     x = np.asarray(sol.x, np.float64)
     cause = stopped_cause(valve.problem, _params(valve, scene, material, p_state, ref),
-                          status, x, skin=valve.skin, precision=scene.precision)
+                          status, x, skin=valve.skin, precision=scene.precision,
+                          fold_bound=not (getattr(contact, "barrier", False)
+                                          and valve.barrier_topology.self_contact))
     rep = SolveReport(pressure=float(pressure), result=status, converged=rr.converged,
                       steps=rr.steps, residual=float(sol.stats.residual), wall_s=wall,
                       compile_s=min(ct.seconds, wall),
