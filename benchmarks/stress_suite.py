@@ -66,11 +66,6 @@ HE_PRESSURE = 3.0
 #: least a millimetre (a few elements of the stress mesh), at most the root's annulus
 #: radius (12 mm): a leaflet's belly cannot balloon as a sphere larger than the root
 BULGE_RADIUS_MM = (1.0, 12.0)
-#: StVK's compressive stability limit: in uniaxial stress (the lateral stress free, any
-#: Poisson ratio: S = E_Y E11 in Green strain) the nominal stress E_Y lam (lam^2 - 1) / 2
-#: has its extreme at lam = 1/sqrt(3); compressed further, the material's own stiffness is
-#: negative and an element can collapse (`limit_analysis`)
-STVK_COMPRESSION_STRETCH = 1.0 / math.sqrt(3.0)
 OUTCOMES = ("converged", "reported", "silent")
 #: results of `valve.close(..., check_state=True)`: the solver met the tolerance, the
 #: state check failed (without the check these runs would be silently wrong)
@@ -556,38 +551,34 @@ def limit_analysis(rec: RunRecord) -> tuple[bool, str]:
     explains the run's limit point.  Predicted where the run's material has an inflation
     limit and the limit pressure is that of a balloon whose reference radius lies in
     `BULGE_RADIUS_MM`; the text states the analysis (the peak's stretch and P R0, the
-    implied radius, or that the material stiffens and has none).  StVK, which stiffens
-    under inflation, loses its stiffness in compression instead: its limit point is
-    predicted where the state at the limit has a triangle compressed past
-    `STVK_COMPRESSION_STRETCH` (``min_stretch``; not predicted where it was not
-    recorded)."""
-    if rec.model == "stvk" and rec.result == "limit_point":
-        return _stvk_compression(rec.min_stretch)
-    return _limit_analysis(rec.model, rec.E, rec.extra, rec.limit_pressure)
-
-
-def _stvk_compression(min_stretch):
-    lim = STVK_COMPRESSION_STRETCH
-    head = (f"StVK stiffens under inflation but loses its compressive stiffness below a "
-            f"principal stretch of 1/sqrt(3) = {lim:.3f}")
-    if not math.isfinite(min_stretch):
-        return False, head + ": the state's stretches were not recorded: not predicted"
-    if min_stretch < lim:
-        return True, (head + f"; the state at the limit is compressed to {min_stretch:.3f}: "
-                      "predicted")
-    return False, (head + f"; the state at the limit is compressed only to "
-                   f"{min_stretch:.3f}: not predicted")
+    implied radius, or that the material stiffens and has none).  A material that
+    stiffens under inflation but loses its stiffness in compression (StVK below a
+    principal stretch of 1/sqrt(3), `jaxvalve.mechanics.inflation.compression_limit`):
+    predicted where the state at the limit has a triangle compressed past that stretch
+    (``min_stretch``; not predicted where it was not recorded)."""
+    return _limit_analysis(rec.model, rec.E, rec.extra, rec.limit_pressure, rec.min_stretch)
 
 
 @functools.lru_cache(maxsize=None)
-def _limit_analysis(model, E, extra, p):
-    from jaxvalve.mechanics.inflation import inflation_limit
+def _limit_analysis(model, E, extra, p, min_stretch=math.nan):
+    from jaxvalve.mechanics.inflation import compression_limit, inflation_limit
     if not (math.isfinite(p) and p > 0):
         return False, f"limit pressure unknown ({p}): not predicted"
     scene = Scene(model=model, E=E, **_extra(extra))
     lim = inflation_limit(scene.material(), scene.thickness)
     if not lim.exists:
-        return False, lim.describe() + ": not predicted"
+        c = compression_limit(scene.material())
+        if c is None:
+            return False, lim.describe() + ": not predicted"
+        head = (lim.describe() + f", but it loses its compressive stiffness below a "
+                f"principal stretch of {c:.3f}")
+        if not math.isfinite(min_stretch):
+            return False, head + " (the state's stretches were not recorded): not predicted"
+        if min_stretch < c:
+            return True, head + f"; the state at the limit is compressed to {min_stretch:.3f}" \
+                ": predicted"
+        return False, head + f"; the state at the limit is compressed only to " \
+            f"{min_stretch:.3f}: not predicted"
     r0 = lim.radius(p)
     lo, hi = BULGE_RADIUS_MM
     ok = lo <= r0 <= hi
@@ -711,9 +702,9 @@ def format_table(records) -> str:
         lines += ["", "Limit points and the inflation analysis "
                   "(`jaxvalve.mechanics.inflation`; predicted where the material has an "
                   f"inflation limit and the bulge radius it implies lies within "
-                  f"{BULGE_RADIUS_MM[0]:g}-{BULGE_RADIUS_MM[1]:g} mm; for StVK, where "
-                  "the state at the limit is compressed past its stability limit "
-                  f"{STVK_COMPRESSION_STRETCH:.3f}):", "",
+                  f"{BULGE_RADIUS_MM[0]:g}-{BULGE_RADIUS_MM[1]:g} mm; for a material "
+                  "that stiffens, where the state at the limit is compressed past the "
+                  "material's compressive stability limit):", "",
                   "| template | mesh | model | E MPa | P mmHg | extra | limit mmHg | analysis |",
                   "|---|---|---|---|---|---|---|---|"]
         for r in lims:

@@ -64,19 +64,15 @@ class SimulationResult:
         points they hang from.  None for a state that is not an equilibrium (h_E is
         measured at the effective-height load: its solve must have converged).  A closure
         that ended at a limit point gets the inflation analysis of its material
-        (`jaxvalve.mechanics.inflation`): the bulge radius that explains the limit, or that
-        the material stiffens and so the limit is not the membrane's inflation limit."""
+        (`jaxvalve.mechanics.inflation`): the bulge radius that explains the limit; or,
+        for a material that stiffens, whether the state at the limit is compressed past
+        the material's compressive stability limit (StVK: a principal stretch of
+        1/sqrt(3)); else that the limit is the end of the branch followed."""
         out = []
         lim = [s for s in self.solves if s.result == "limit_point"]
         if lim:
-            from .mechanics.inflation import inflation_limit
-            p = lim[0].limit_pressure
-            a = inflation_limit(self.scene.material(), self.scene.thickness)
-            out.append(f"limit point: no equilibrium above {p:.3g} mmHg on the branch "
-                       "followed; " + (a.describe(p) if a.exists else a.describe() +
-                                       ", so this limit is not the membrane's inflation "
-                                       "limit but the end of the branch the continuation "
-                                       "followed (docs/limit-points.md)"))
+            out.append(f"limit point: no equilibrium above {lim[0].limit_pressure:.3g} mmHg "
+                       "on the branch followed; " + self._limit_analysis(lim[0]))
         heights = np.asarray(self.valve.root.commissure_heights, float)
         if (self.solves[0].converged and np.isfinite(self.h_E)
                 and self.h_E > heights.max()):
@@ -86,6 +82,26 @@ class SimulationResult:
                        f"({heights.min():.1f}-{heights.max():.1f} mm): the leaflets meet "
                        f"higher than they hang")
         return tuple(out)
+
+    def _limit_analysis(self, solve) -> str:
+        """The material's analysis of a limit point (`warnings`)."""
+        from .mechanics.inflation import compression_limit, inflation_limit
+        from .valve.checks import triangle_checks
+        material = self.scene.material()
+        a = inflation_limit(material, self.scene.thickness)
+        if a.exists:
+            return a.describe(solve.limit_pressure)
+        c = compression_limit(material)
+        x = self.x_he if solve is self.solves[0] else self.x
+        lam = (triangle_checks(self.valve.ref, self.valve.triangles, x).min_stretch
+               if np.all(np.isfinite(x)) else float("nan"))
+        if c is not None and lam < c:
+            return (a.describe() + f", but it loses its compressive stiffness below a "
+                    f"principal stretch of {c:.3f}, and the state at the limit is "
+                    f"compressed to {lam:.3f}: the limit is the material's, in compression "
+                    "(docs/limit-points.md)")
+        return (a.describe() + ", so this limit is not the membrane's inflation limit but "
+                "the end of the branch the continuation followed (docs/limit-points.md)")
 
     def summary(self) -> dict:
         """The headline metrics (mm, %) of the valve."""

@@ -115,3 +115,28 @@ def test_bad_input_is_refused():
         lim.pressure(0.0)
     with pytest.raises(ParameterError, match="pressure must be finite and > 0 mmHg"):
         lim.radius(float("nan"))
+
+
+@pytest.mark.parametrize("nu", [0.45, 0.3])
+def test_stvk_loses_its_compressive_stiffness_at_one_over_root_three(nu):
+    """In uniaxial stress (lateral stress free) StVK's Green strain law S = E_Y E11 gives
+    the nominal stress E_Y lam (lam^2 - 1) / 2, for any nu: its compressive extreme, where
+    the material's own stiffness turns negative, is at lam = 1/sqrt(3)."""
+    from jaxvalve.mechanics.inflation import compression_limit, uniaxial_stress
+    m = StVenantKirchhoff(0.05, nu)
+    lam = np.array([0.3, 0.5, 0.8, 1.0, 1.3])
+    np.testing.assert_allclose(uniaxial_stress(m, lam), 0.05 * lam * (lam**2 - 1) / 2,
+                               rtol=1e-9, atol=1e-14)
+    assert compression_limit(m) == pytest.approx(1 / np.sqrt(3), rel=1e-8)
+
+
+def test_neo_hookean_gent_and_springs_keep_their_compressive_stiffness():
+    """Incompressible neo-Hookean in uniaxial stress: mu (lam - 1/lam^2), stiffening as it
+    is compressed; so do Gent and the springs: no compression limit."""
+    from jaxvalve.mechanics.inflation import compression_limit, uniaxial_stress
+    mu = 0.05 / 3
+    lam = np.array([0.2, 0.5, 0.9, 1.0, 1.5])
+    np.testing.assert_allclose(uniaxial_stress(NeoHookean(mu), lam), mu * (lam - lam**-2),
+                               rtol=1e-9, atol=1e-14)
+    for m in (NeoHookean(mu), Gent(mu, 2.3), MassSpring.linear(0.05)):
+        assert compression_limit(m) is None, m

@@ -134,3 +134,67 @@ def inflation_limit(material, thickness: float, stretch_max: float = 8.0,
                           bounds=(lam[i - 1], lam[i + 1]), method="bounded",
                           options=dict(xatol=1e-10))
     return InflationLimit(name, float(res.x), float(-res.fun), float(stretch_max))
+
+
+# ------------------------------------------------------------------ compression limit
+def _biaxial(l1, l2):
+    """C = diag(l1^2, l2^2) (1, 2, 2): one triangle stretched by l1 along its first edge
+    (the fibres) and l2 across."""
+    return jnp.stack([jnp.stack([l1**2, 0.0 * l1]), jnp.stack([0.0 * l1, l2**2])])[None]
+
+
+@jax.jit
+def _uniaxial(material, l1, l2):
+    """(dw/dl1, dw/dl2, admissible) at each (l1, l2) (K,): the energy density's partials."""
+    geom = _one_triangle_geometry()
+
+    def w(a, b):
+        return material.energy_density(_biaxial(a, b), geom)[0]
+    ok = jax.vmap(lambda a, b: material.stretch_ok(_biaxial(a, b))[0])(l1, l2)
+    return jax.vmap(jax.grad(w, 0))(l1, l2), jax.vmap(jax.grad(w, 1))(l1, l2), ok
+
+
+def uniaxial_stress(material, stretch, n_iter: int = 60) -> np.ndarray:
+    """The nominal stress (MPa) of ``material`` stretched by ``stretch`` (array) along its
+    first axis with the lateral stress free: dw/dl1 at the lateral stretch that zeroes
+    dw/dl2 (bisection on 0.01-10; a lateral stretch past the material's stretch limit
+    counts as too small below 1 and too large above); nan where that state is past it."""
+    l1 = jnp.asarray(np.atleast_1d(np.asarray(stretch, float)))
+    lo, hi = np.full(l1.shape, 0.01), np.full(l1.shape, 10.0)
+    for _ in range(n_iter):              # dw/dl2 rises through 0 at the free lateral stretch
+        mid = 0.5 * (lo + hi)
+        _, g, ok = (np.asarray(a) for a in _uniaxial(material, l1, jnp.asarray(mid)))
+        low = np.where(ok, g < 0, mid < 1.0)
+        lo, hi = np.where(low, mid, lo), np.where(low, hi, mid)
+    s, _, ok = (np.asarray(a) for a in _uniaxial(material, l1, jnp.asarray(0.5 * (lo + hi))))
+    return np.where(ok, s, np.nan)
+
+
+def compression_limit(material, stretch_min: float = 0.05, n: int = 2000) -> float | None:
+    """The stretch below 1 at which the material's uniaxial compressive stress (lateral
+    stress free, `uniaxial_stress`) stops growing in magnitude as it is compressed further
+    (the largest stretch where d(stress)/d(stretch) turns negative on a grid of n points
+    down to ``stretch_min``), or None where it keeps growing.  There the material's own
+    stiffness is negative and a compressed element can collapse: St.Venant-Kirchhoff at
+    1/sqrt(3) (S = E_Y E_11 in uniaxial stress for any nu, so the nominal stress is
+    E_Y lam (lam^2 - 1) / 2); neo-Hookean, Gent and springs have none."""
+    material.validate()
+    lam = np.linspace(1.0, float(stretch_min), int(n))
+    s = uniaxial_stress(material, lam)
+    bad = np.flatnonzero(~np.isfinite(s))         # past the stretch limit: search above it
+    if len(bad):
+        lam, s = lam[:bad[0]], s[:bad[0]]
+    falling = np.flatnonzero(np.diff(s) >= 0)      # compressing further no longer lowers it
+    if not len(falling):
+        return None
+    i = int(falling[0])
+    # refine on the stiffness's root between the two grid points around the turn
+    from scipy.optimize import brentq
+    h = 1e-6
+
+    def stiff(x):
+        return float(np.diff(uniaxial_stress(material, [x - h, x + h]))[0] / (2 * h))
+    a, b = lam[i + 1], lam[max(i - 1, 0)]
+    if stiff(a) * stiff(b) > 0:
+        return float(lam[i])
+    return float(brentq(stiff, a, b, xtol=1e-10))

@@ -178,7 +178,7 @@ def test_limit_points_are_judged_by_the_inflation_analysis(tmp_path):
     # StVK stiffens under inflation; its limit is explained only by a triangle
     # compressed past its own stability limit, lam = 1/sqrt(3)
     ok, text = S.limit_analysis(dataclasses.replace(stvk, min_stretch=0.233))
-    assert ok and "1/sqrt(3) = 0.577" in text and "0.233" in text
+    assert ok and "stretch of 0.577" in text and "0.233" in text
     ok, text = S.limit_analysis(dataclasses.replace(stvk, min_stretch=0.6))
     assert not ok and "only to 0.600" in text
     ok, text = S.limit_analysis(piecewise)     # 71 mm: far larger than the root
