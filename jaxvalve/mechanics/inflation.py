@@ -19,6 +19,13 @@ the stretch limit, and such a balloon has an equilibrium at every pressure.
 computation).  `InflationLimit.radius` turns an observed limit pressure into the
 reference radius of the balloon that would peak there: the size of the bulge the limit
 point implies, to compare with the valve's (a leaflet's belly, a few mm to about 10 mm).
+
+A material that stiffens under inflation may instead lose its stiffness in compression:
+`compression_limit` finds the stretch below 1 at which its uniaxial compressive stress
+(lateral stress free) stops growing in magnitude.  St.Venant-Kirchhoff has one at
+1/sqrt(3) (its nominal stress E_Y lam (lam^2 - 1) / 2); compressed further a triangle's
+own stiffness is negative.  The soft StVK valves' limit points have states compressed
+past it (docs/limit-points.md).
 """
 from __future__ import annotations
 
@@ -32,7 +39,8 @@ from ..errors import ParameterError, check_positive
 from .materials import SpringGeometry
 from .problem import MMHG
 
-__all__ = ["InflationLimit", "balloon_pressure", "inflation_limit"]
+__all__ = ["InflationLimit", "balloon_pressure", "inflation_limit", "compression_limit",
+           "uniaxial_stress"]
 
 
 def _one_triangle_geometry():
