@@ -551,11 +551,12 @@ def limit_analysis(rec: RunRecord) -> tuple[bool, str]:
     explains the run's limit point.  Predicted where the run's material has an inflation
     limit and the limit pressure is that of a balloon whose reference radius lies in
     `BULGE_RADIUS_MM`; the text states the analysis (the peak's stretch and P R0, the
-    implied radius, or that the material stiffens and has none).  A material that
-    stiffens under inflation but loses its stiffness in compression (StVK below a
-    principal stretch of 1/sqrt(3), `jaxvalve.mechanics.inflation.compression_limit`):
-    predicted where the state at the limit has a triangle compressed past that stretch
-    (``min_stretch``; not predicted where it was not recorded)."""
+    implied radius, or that the material stiffens and has none).  For a material that
+    stiffens under inflation but softens in compression (StVK below a principal stretch
+    of 1/sqrt(3), `jaxvalve.mechanics.inflation.compression_limit`) the text says how far
+    the state at the limit is compressed (``min_stretch``), but predicts nothing: converged
+    states are compressed past that stretch too (template (c), StVK at 0.1 MPa and 80
+    mmHg: 0.414)."""
     return _limit_analysis(rec.model, rec.E, rec.extra, rec.limit_pressure, rec.min_stretch)
 
 
@@ -570,15 +571,13 @@ def _limit_analysis(model, E, extra, p, min_stretch=math.nan):
         c = compression_limit(scene.material())
         if c is None:
             return False, lim.describe() + ": not predicted"
-        head = (lim.describe() + f", but it loses its compressive stiffness below a "
-                f"principal stretch of {c:.3f}")
+        head = (lim.describe() + f", but it softens in compression below a principal "
+                f"stretch of {c:.3f}")
         if not math.isfinite(min_stretch):
             return False, head + " (the state's stretches were not recorded): not predicted"
-        if min_stretch < c:
-            return True, head + f"; the state at the limit is compressed to {min_stretch:.3f}" \
-                ": predicted"
-        return False, head + f"; the state at the limit is compressed only to " \
-            f"{min_stretch:.3f}: not predicted"
+        past = "past it" if min_stretch < c else "not past it"
+        return False, (head + f"; the state at the limit is compressed to {min_stretch:.3f}, "
+                       f"{past} (converged states can be too): not predicted")
     r0 = lim.radius(p)
     lo, hi = BULGE_RADIUS_MM
     ok = lo <= r0 <= hi
@@ -703,8 +702,7 @@ def format_table(records) -> str:
                   "(`jaxvalve.mechanics.inflation`; predicted where the material has an "
                   f"inflation limit and the bulge radius it implies lies within "
                   f"{BULGE_RADIUS_MM[0]:g}-{BULGE_RADIUS_MM[1]:g} mm; for a material "
-                  "that stiffens, where the state at the limit is compressed past the "
-                  "material's compressive stability limit):", "",
+                  "that stiffens, how far the state at the limit is compressed):", "",
                   "| template | mesh | model | E MPa | P mmHg | extra | limit mmHg | analysis |",
                   "|---|---|---|---|---|---|---|---|"]
         for r in lims:

@@ -65,9 +65,9 @@ class SimulationResult:
         measured at the effective-height load: its solve must have converged).  A closure
         that ended at a limit point gets the inflation analysis of its material
         (`jaxvalve.mechanics.inflation`): the bulge radius that explains the limit; or,
-        for a material that stiffens, whether the state at the limit is compressed past
-        the material's compressive stability limit (StVK: a principal stretch of
-        1/sqrt(3)); else that the limit is the end of the branch followed."""
+        for a material that stiffens, that the limit is the end of the branch followed,
+        and whether its state is compressed past the stretch below which the material
+        softens (StVK: 1/sqrt(3))."""
         out = []
         lim = [s for s in self.solves if s.result == "limit_point"]
         if lim:
@@ -95,13 +95,13 @@ class SimulationResult:
         x = self.x_he if solve is self.solves[0] else self.x
         lam = (triangle_checks(self.valve.ref, self.valve.triangles, x).min_stretch
                if np.all(np.isfinite(x)) else float("nan"))
+        text = (a.describe() + ", so this limit is not the membrane's inflation limit but "
+                "the end of the branch the continuation followed")
         if c is not None and lam < c:
-            return (a.describe() + f", but it loses its compressive stiffness below a "
-                    f"principal stretch of {c:.3f}, and the state at the limit is "
-                    f"compressed to {lam:.3f}: the limit is the material's, in compression "
-                    "(docs/limit-points.md)")
-        return (a.describe() + ", so this limit is not the membrane's inflation limit but "
-                "the end of the branch the continuation followed (docs/limit-points.md)")
+            text += (f"; its state is compressed to a principal stretch of {lam:.3f}, past "
+                     f"the {c:.3f} below which {a.model} softens in compression (an "
+                     "artefact of the material law: real tissue wrinkles)")
+        return text + " (docs/limit-points.md)"
 
     def summary(self) -> dict:
         """The headline metrics (mm, %) of the valve."""

@@ -25,7 +25,7 @@ A material that stiffens under inflation may instead lose its stiffness in compr
 (lateral stress free) stops growing in magnitude.  St.Venant-Kirchhoff has one at
 1/sqrt(3) (its nominal stress E_Y lam (lam^2 - 1) / 2); compressed further a triangle's
 own stiffness is negative.  The soft StVK valves' limit points have states compressed
-past it (docs/limit-points.md).
+past it, and so do some of their equilibria (docs/limit-points.md).
 """
 from __future__ import annotations
 
