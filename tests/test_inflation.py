@@ -110,6 +110,13 @@ def test_bad_input_is_refused():
         inflation_limit(NeoHookean(-0.1), H)
     with pytest.raises(ParameterError, match="thickness"):
         balloon_pressure(NeoHookean(0.1), float("nan"), [1.2])
+    from jaxvalve.mechanics.inflation import compression_limit, uniaxial_stress
+    with pytest.raises(ParameterError, match="stretch_min"):
+        compression_limit(StVenantKirchhoff(0.05), stretch_min=1.5)
+    with pytest.raises(ParameterError, match="every stretch"):
+        uniaxial_stress(StVenantKirchhoff(0.05), [0.5, float("nan")])
+    with pytest.raises(ParameterError, match="E"):
+        compression_limit(StVenantKirchhoff(-0.05))
     lim = inflation_limit(NeoHookean(0.1), H)
     with pytest.raises(ParameterError, match="radius must be finite and > 0 mm"):
         lim.pressure(0.0)

@@ -166,16 +166,24 @@ def uniaxial_stress(material, stretch, n_iter: int = 60) -> np.ndarray:
     """The nominal stress (MPa) of ``material`` stretched by ``stretch`` (array) along its
     first axis with the lateral stress free: dw/dl1 at the lateral stretch that zeroes
     dw/dl2 (bisection on 0.01-10; a lateral stretch past the material's stretch limit
-    counts as too small below 1 and too large above); nan where that state is past it."""
-    l1 = jnp.asarray(np.atleast_1d(np.asarray(stretch, float)))
+    counts as too small below 1 and too large above); nan where that state is past it, or
+    where no lateral stretch in 0.01-10 frees it."""
+    lam = np.atleast_1d(np.asarray(stretch, float))
+    if not (lam.size and np.all(np.isfinite(lam)) and np.all(lam > 0)):
+        raise ParameterError(f"uniaxial_stress: every stretch must be finite and > 0; got "
+                             f"{np.asarray(stretch).tolist()}")
+    material.validate()
+    l1 = jnp.asarray(lam)
     lo, hi = np.full(l1.shape, 0.01), np.full(l1.shape, 10.0)
     for _ in range(n_iter):              # dw/dl2 rises through 0 at the free lateral stretch
         mid = 0.5 * (lo + hi)
         _, g, ok = (np.asarray(a) for a in _uniaxial(material, l1, jnp.asarray(mid)))
         low = np.where(ok, g < 0, mid < 1.0)
         lo, hi = np.where(low, mid, lo), np.where(low, hi, mid)
-    s, _, ok = (np.asarray(a) for a in _uniaxial(material, l1, jnp.asarray(0.5 * (lo + hi))))
-    return np.where(ok, s, np.nan)
+    l2 = 0.5 * (lo + hi)
+    s, _, ok = (np.asarray(a) for a in _uniaxial(material, l1, jnp.asarray(l2)))
+    free = (l2 > 0.0101) & (l2 < 9.99)              # not pinned at an end of the bracket
+    return np.where(ok & free, s, np.nan)
 
 
 def compression_limit(material, stretch_min: float = 0.05, n: int = 2000) -> float | None:
@@ -186,7 +194,11 @@ def compression_limit(material, stretch_min: float = 0.05, n: int = 2000) -> flo
     stiffness is negative and a compressed element can collapse: St.Venant-Kirchhoff at
     1/sqrt(3) (S = E_Y E_11 in uniaxial stress for any nu, so the nominal stress is
     E_Y lam (lam^2 - 1) / 2); neo-Hookean, Gent and springs have none."""
-    material.validate()
+    if not (np.isfinite(stretch_min) and 0.0 < stretch_min < 1.0):
+        raise ParameterError(f"compression_limit: stretch_min must lie in (0, 1); got "
+                             f"{stretch_min}")
+    if int(n) < 3:
+        raise ParameterError(f"compression_limit: n must be at least 3 grid points; got {n}")
     lam = np.linspace(1.0, float(stretch_min), int(n))
     s = uniaxial_stress(material, lam)
     bad = np.flatnonzero(~np.isfinite(s))         # past the stretch limit: search above it

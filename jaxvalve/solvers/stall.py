@@ -144,7 +144,8 @@ def probe(problem, params, x, *, skin=equilibrium.DEFAULT_SKIN, step=1e-7,
     """Probe the force at positions x (N, 3) mm of ``problem`` under ``params``, each
     evaluation with contact pair lists built at its own positions (host side; evaluate
     in float64).  precision: that of the solve being judged (its rounding floor); seed:
-    that of the random move that measures the floor's state part (a third evaluation)."""
+    that of the random move that measures the floor's state part (a third evaluation,
+    skipped where the move rounds back to x, as it does in float64)."""
     def at(y):
         nbrs = None
         if params.contact is not None:
@@ -166,7 +167,9 @@ def probe(problem, params, x, *, skin=equilibrium.DEFAULT_SKIN, step=1e-7,
     spacing = np.spacing(np.abs(x64).astype(dtype)).astype(np.float64)
     free = np.asarray(problem.free, bool)[:, None]
     move = np.random.default_rng(seed).uniform(-0.5, 0.5, x64.shape) * spacing * free
-    state = float(np.linalg.norm(at(jnp.asarray(x64 + move, x.dtype)).sum(0) - F))
+    moved = x64 + move            # in float64 a move within half a spacing rounds back
+    state = 0.0 if np.array_equal(moved, x64) else float(
+        np.linalg.norm(at(jnp.asarray(moved, x.dtype)).sum(0) - F))
     return StallReport(force=float(np.linalg.norm(F)), jumps=jumps,
                        node=int(np.argmax(change[k])), step=float(step),
                        floor_arithmetic=arithmetic, floor_state=state, precision=dtype.name)
