@@ -88,3 +88,49 @@ def test_heartbeat_interval_must_be_positive():
     for bad in (0.0, -1.0, float("nan"), float("inf")):
         with pytest.raises(ParameterError, match="every must be a finite number of seconds"):
             progress.Heartbeat(print, every=bad)
+
+
+_CACHED_SOLVE = """
+import sys
+import jax
+jax.config.update("jax_enable_x64", True)
+jax.config.update("jax_compilation_cache_dir", sys.argv[1])
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)
+jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)
+import jax.numpy as jnp
+from jaxvalve.geometry import meshgen
+from jaxvalve.mechanics.materials import StVenantKirchhoff
+from jaxvalve.mechanics.problem import Params, make_problem, mmhg
+from jaxvalve.solvers import FIRE, equilibrium
+p, t, rim = meshgen.disk(5.0, 4)
+problem, ref = make_problem(p, t, fixed=rim)
+params = Params(ref=ref, material=StVenantKirchhoff(E=1.0, nu=0.45), thickness=0.3,
+                pressure=mmhg(80))
+x0 = jnp.asarray(meshgen.lift(p))
+top = equilibrium.solve(problem, params, x0, FIRE(rtol=1e-8), throw=False)
+def traced_solve(x):
+    return equilibrium.solve(problem, params, x, FIRE(rtol=1e-8), throw=False).x
+inner = jax.jit(traced_solve)(x0)
+print(int(top.stats.steps), float(jnp.max(jnp.abs(inner - top.x))))
+"""
+
+
+def test_a_top_level_solve_is_kept_by_the_persistent_compilation_cache(tmp_path):
+    """JAX writes no program that holds a host callback to its persistent compilation
+    cache, so a loop that sends its beacons through one is compiled anew in every process
+    (a warm `jaxvalve simulate` compiled its solve again: 16.8 s of compilation against
+    5.8 s).  A solve called with concrete values runs its loop from the host in stretches
+    of BEACON_EVERY steps and sends the beacons itself: its programs are cached.  A solve
+    inside a trace is one program with the callback in it, and is not (the last assert
+    shows the rule the first one depends on).  Both give the same equilibrium."""
+    import subprocess
+    import sys
+    done = subprocess.run([sys.executable, "-c", _CACHED_SOLVE, str(tmp_path)],
+                          capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    steps, diff = done.stdout.split()
+    assert int(steps) > progress.BEACON_EVERY          # more than one stretch ran
+    assert float(diff) < 1e-12
+    cached = {f.name.split("-")[0] for f in tmp_path.iterdir()}
+    assert {"jit__stretch", "jit__stretch_start", "jit__stretch_end"} <= cached, cached
+    assert "jit_traced_solve" not in cached, cached

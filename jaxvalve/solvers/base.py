@@ -239,16 +239,99 @@ def iterate(solver, system, y0, args, *, members_apart: bool = False, handoff: i
     of these give the single solve.  beacon: send the loop's progress to the host
     (`jaxvalve.progress`); a batched loop must pass False (under vmap the call would run
     at every step)."""
+    c = loop_start(solver, system, y0, args)
+    # The args other than the pair list and f0 are loop constants: carried only where the
+    # loop is the single solve's (or a plain vmap of it)
+    apart = members_apart or handoff > 0
+    args = c[1]
+    fixed = {k: v for k, v in args.items() if k not in _STEP_ARGS} if apart else {}
+    strip = lambda a: {k: v for k, v in a.items() if k not in fixed}
+    running = _running(solver)
+    stepper = lambda send: _stepper(solver, system, fixed, send)
+    trip = stepper(beacon)
+
+    def member_loop(*c):
+        # one member's own loop (`each_active`): unbatched, so it reports its progress and,
+        # at its end, that one more member has finished
+        c = jax.lax.while_loop(running, stepper(True), c)
+        jax.debug.callback(progress.member_done)
+        return c
+
+    def trip_kept(c):
+        # `trip` for a loop whose predicate is one for the batch: a member that has stopped
+        # keeps its carry (what vmap's own select does in the plain vectorised loop)
+        live = running(c)
+        return jax.tree_util.tree_map(lambda p, q: jnp.where(live, p, q), trip(c), c)
+
+    c = (c[0], strip(args), *c[2:])
+    if not apart:
+        c = jax.lax.while_loop(running, trip, c)
+    else:
+        if not members_apart:
+            # vectorised while more than ``handoff`` members run, the rebuilds too as one
+            # array program (`vmap_control.branches("select")`)
+            many = lambda c: batch_sum(running(c).astype(jnp.int32)) > handoff
+            with branches("select"):
+                c = jax.lax.while_loop(many, trip_kept, c)
+        # then each member still running finishes in its own loop, the single solve's
+        c = each_active(running(c), member_loop, *c)
+    y, args, state, n, done, result, y_upd = c
+    return loop_end((y, {**fixed, **args}, state, n, done, result, y_upd))
+
+
+def loop_start(solver, system, y0, args):
+    """The carry of `iterate`'s loop at y0: (y, args, state, n, done, result, y_upd),
+    with the solver's state and the residual scale at P = 0 (``f0``) set."""
     state = solver.init(system, y0, args)
     lazy = getattr(solver, "lazy_force", False)   # F(y0) comes from the first step
     if "f0" in args and not lazy:  # residual scale at P = 0: the initial force
         F0 = state["F"] if "F" in state else system.force(y0, args)
         args = _set_f0(args, F0)
     done, result = solver.terminate(system, y0, args, state)
+    return (y0, args, state, jnp.asarray(0), done, result, y0)
 
+
+def loop_chunk(solver, system, c, stop):
+    """The single solve's loop from the carry c (`loop_start`) until it is done, at its
+    step cap or at ``stop`` steps (traced), without beacons: the host calls it once per
+    `progress.BEACON_EVERY` steps and sends the beacon itself (`loop_residual`), so that
+    the compiled program holds no host callback and the persistent compilation cache
+    keeps it."""
+    running = _running(solver)
+    return jax.lax.while_loop(lambda c: running(c) & (c[3] < stop),
+                              _stepper(solver, system, {}, False), c)
+
+
+def loop_running(solver, c):
+    """Whether the loop of carry c has steps left (not done, under the step cap)."""
+    return _running(solver)(c)
+
+
+def loop_residual(system, c):
+    """The relative residual of carry c, as a beacon reports it (nan before a force)."""
+    y, args, state = c[0], c[1], c[2]
+    return (relative_residual(system, y, args, state["F"]) if "F" in state
+            else jnp.asarray(jnp.nan, y.dtype))
+
+
+def loop_end(c):
+    """(y, args, state, result, n) of a finished carry: an unfinished loop is at its cap."""
+    y, args, state, n, done, result, _ = c
+    result = jnp.where(done, result, RESULTS.max_steps_reached)
+    return y, args, state, result, n
+
+
+def _running(solver):
     def running(c):
         _, _, _, n, done, _, _ = c
         return (~done) & (n < solver.max_steps)
+    return running
+
+
+def _stepper(solver, system, fixed, send):
+    """One step of `iterate`'s loop on its carry; ``fixed``: the args held out of the
+    carry (members apart); ``send``: a beacon every `progress.BEACON_EVERY` steps."""
+    lazy = getattr(solver, "lazy_force", False)
 
     def update(y, args, done, y_upd):
         # A vectorised batch also steps the members that have finished (and vmap discards
@@ -265,51 +348,12 @@ def iterate(solver, system, y0, args, *, members_apart: bool = False, handoff: i
         done, result = solver.terminate(system, y, args, state)
         return y, args, state, done, result
 
-    # The args other than the pair list and f0 are loop constants: carried only where the
-    # loop is the single solve's (or a plain vmap of it)
-    apart = members_apart or handoff > 0
-    fixed = {k: v for k, v in args.items() if k not in _STEP_ARGS} if apart else {}
-    strip = lambda a: {k: v for k, v in a.items() if k not in fixed}
-
-    def stepper(send):
-        def trip(c):
-            # one step: the single solve's loop body (under a plain vmap, every member's)
-            y, args, state, n, done, result, y_upd = c
-            a, y_upd = update(y, {**fixed, **args}, done, y_upd)
-            y, a, state, done, result = advance(y, a, state, done)
-            if send:
-                _send_beacon(solver, system, y, a, state, n + 1)
-            return y, strip(a), state, n + 1, done, result, y_upd
-        return trip
-
-    trip = stepper(beacon)
-
-    def member_loop(*c):
-        # one member's own loop (`each_active`): unbatched, so it reports its progress and,
-        # at its end, that one more member has finished
-        c = jax.lax.while_loop(running, stepper(True), c)
-        jax.debug.callback(progress.member_done)
-        return c
-
-    def trip_kept(c):
-        # `trip` for a loop whose predicate is one for the batch: a member that has stopped
-        # keeps its carry (what vmap's own select does in the plain vectorised loop)
-        live = running(c)
-        return jax.tree_util.tree_map(lambda p, q: jnp.where(live, p, q), trip(c), c)
-
-    c = (y0, strip(args), state, jnp.asarray(0), done, result, y0)
-    if not apart:
-        c = jax.lax.while_loop(running, trip, c)
-    else:
-        if not members_apart:
-            # vectorised while more than ``handoff`` members run, the rebuilds too as one
-            # array program (`vmap_control.branches("select")`)
-            many = lambda c: batch_sum(running(c).astype(jnp.int32)) > handoff
-            with branches("select"):
-                c = jax.lax.while_loop(many, trip_kept, c)
-        # then each member still running finishes in its own loop, the single solve's
-        c = each_active(running(c), member_loop, *c)
-    y, args, state, n, done, result, _ = c
-    args = {**fixed, **args}
-    result = jnp.where(done, result, RESULTS.max_steps_reached)
-    return y, args, state, result, n
+    def trip(c):
+        # one step: the single solve's loop body (under a plain vmap, every member's)
+        y, args, state, n, done, result, y_upd = c
+        a, y_upd = update(y, {**fixed, **args}, done, y_upd)
+        y, a, state, done, result = advance(y, a, state, done)
+        if send:
+            _send_beacon(solver, system, y, a, state, n + 1)
+        return y, {k: v for k, v in a.items() if k not in fixed}, state, n + 1, done, result, y_upd
+    return trip
