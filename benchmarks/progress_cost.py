@@ -1,9 +1,11 @@
 """What live progress costs: the beacons of `jaxvalve.progress` in a compiled FIRE loop.
 
 The benchmark valve (StVK, FIRE on the smooth law, both loads) is closed in one process
-with the beacons compiled in (the default: a `jax.debug.callback` every
-`progress.BEACON_EVERY` steps) and without them (`solvers.base._send_beacon` replaced by
-a no-op before the program is traced: the loop without any callback).  Each variant is
+with the beacons (the default: the loop run from the host in stretches of
+`progress.BEACON_EVERY` steps, a beacon after each, `equilibrium._solve_stretches`) and
+without them (the whole loop as one program, `equilibrium._solve_compiled`, with
+`solvers.base._send_beacon` replaced by a no-op before it is traced: no callback and no
+stretches).  Each variant is
 compiled afresh (`jax.clear_caches()`), then timed ``--repeats`` times after compilation,
 alternating the variants, and the table gives the median solve time (both loads) of each
 and the overhead in per cent.  The target: under 5 %.  A heartbeat thread runs during the
@@ -26,15 +28,17 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from jaxvalve import Scene, simulate  # noqa: E402
 from jaxvalve import progress  # noqa: E402
 from jaxvalve.simulation import build_scene_valve  # noqa: E402
-from jaxvalve.solvers import base  # noqa: E402
+from jaxvalve.solvers import base, equilibrium  # noqa: E402
 from jaxvalve.xla_setup import platform_summary  # noqa: E402
 from closure_speed import Tee  # noqa: E402  (this folder is on the path of a script)
 
 REAL = base._send_beacon
+STRETCHES = equilibrium._solve_stretches
 
 
 def variant(on: bool):
     base._send_beacon = REAL if on else (lambda *a, **k: None)
+    equilibrium._solve_stretches = STRETCHES if on else equilibrium._solve_compiled
     jax.clear_caches()
 
 

@@ -2,14 +2,18 @@
 
 Two halves, apart so that the compiled programs never depend on whether anyone listens:
 
-* **Beacons.**  A single solve's `lax.while_loop` (`solvers.base.iterate`) calls `beacon`
-  through `jax.debug.callback` once every `BEACON_EVERY` steps, with the step count and the
-  relative residual; the barrier Newton solver (a host loop) calls it every step, and a
-  batch member's own loop (`iterate(members_apart=True)` or its hand-off) beacons like a
-  single solve and calls `member_done` at its end.  A beacon only stores the latest
-  figures (a lock and a few assignments): it prints nothing.  Its
-  cost is measured by `benchmarks/progress_cost.py` (the same closure with and without the
-  beacons, in one process).  Vectorised batch steps send none: under `vmap` the step
+* **Beacons.**  A single solve called with concrete values runs its compiled loop from the
+  host in stretches of `BEACON_EVERY` steps (`solvers.equilibrium._solve_stretches`) and
+  calls `beacon` after each, with the step count and the relative residual: none of its
+  programs holds a host callback, which JAX's persistent compilation cache would refuse to
+  store.  Inside a trace the loop (`solvers.base.iterate`) calls it through
+  `jax.debug.callback` every `BEACON_EVERY` steps instead; the barrier Newton solver (a
+  host loop) calls it every step, and a batch member's own loop
+  (`iterate(members_apart=True)` or its hand-off) beacons through the callback and calls
+  `member_done` at its end.  A beacon only stores the latest figures (a lock and a few
+  assignments): it prints nothing.  Its cost is measured by
+  `benchmarks/progress_cost.py` (the same closure in stretches with beacons and as one
+  loop without, in one process).  Vectorised batch steps send none: under `vmap` the step
   counter is per member, and the call would run at every step.
 * **The heartbeat.**  `Heartbeat(say)` wraps a command-line run: every line the run prints
   through `Heartbeat.say` becomes the current phase, and a daemon thread prints, whenever

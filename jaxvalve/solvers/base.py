@@ -237,8 +237,10 @@ def iterate(solver, system, y0, args, *, members_apart: bool = False, handoff: i
     running, each of them finishes in its own loop, so that a straggler's last steps cost
     what they cost alone, not a whole batch's vectorised step (0: never).  Unbatched, all
     of these give the single solve.  beacon: send the loop's progress to the host
-    (`jaxvalve.progress`); a batched loop must pass False (under vmap the call would run
-    at every step)."""
+    (`jaxvalve.progress`) through `jax.debug.callback`; a batched loop must pass False
+    (under vmap the call would run at every step).  A program with the callback is not
+    kept by the persistent compilation cache: a solve from the host runs the loop in
+    stretches instead (`loop_start`, `loop_chunk`, `loop_end`)."""
     c = loop_start(solver, system, y0, args)
     # The args other than the pair list and f0 are loop constants: carried only where the
     # loop is the single solve's (or a plain vmap of it)
