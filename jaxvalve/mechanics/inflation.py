@@ -162,6 +162,10 @@ def _uniaxial(material, l1, l2):
     return jax.vmap(jax.grad(w, 0))(l1, l2), jax.vmap(jax.grad(w, 1))(l1, l2), ok
 
 
+#: The bracket of `uniaxial_stress`'s bisection for the free lateral stretch.
+_LATERAL = (0.01, 10.0)
+
+
 def uniaxial_stress(material, stretch, n_iter: int = 60) -> np.ndarray:
     """The nominal stress (MPa) of ``material`` stretched by ``stretch`` (array) along its
     first axis with the lateral stress free: dw/dl1 at the lateral stretch that zeroes
@@ -174,7 +178,7 @@ def uniaxial_stress(material, stretch, n_iter: int = 60) -> np.ndarray:
                              f"{np.asarray(stretch).tolist()}")
     material.validate()
     l1 = jnp.asarray(lam)
-    lo, hi = np.full(l1.shape, 0.01), np.full(l1.shape, 10.0)
+    lo, hi = np.full(l1.shape, _LATERAL[0]), np.full(l1.shape, _LATERAL[1])
     for _ in range(n_iter):              # dw/dl2 rises through 0 at the free lateral stretch
         mid = 0.5 * (lo + hi)
         _, g, ok = (np.asarray(a) for a in _uniaxial(material, l1, jnp.asarray(mid)))
@@ -182,7 +186,7 @@ def uniaxial_stress(material, stretch, n_iter: int = 60) -> np.ndarray:
         lo, hi = np.where(low, mid, lo), np.where(low, hi, mid)
     l2 = 0.5 * (lo + hi)
     s, _, ok = (np.asarray(a) for a in _uniaxial(material, l1, jnp.asarray(l2)))
-    free = (l2 > 0.0101) & (l2 < 9.99)              # not pinned at an end of the bracket
+    free = (l2 > 1.01 * _LATERAL[0]) & (l2 < 0.999 * _LATERAL[1])   # not pinned at an end
     return np.where(ok & free, s, np.nan)
 
 

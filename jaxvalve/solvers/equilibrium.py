@@ -166,18 +166,23 @@ def _make_args(problem, params, x0, nbrs, solver, skin):
 
 
 def _run(solver, problem, params, x0, nbrs, skin):
+    """The solve as one program: (y, result, `Stats`, pair list, delta)."""
     system, args = _make_args(problem, params, x0, nbrs, solver, skin)
-    steps = evals = hvps = jnp.asarray(0)
+    totals = (jnp.asarray(0),) * 3
     y = x0
     for warm in getattr(solver, "warm_start", None) or ():
         y, args, st, _, n = iterate(warm, system, y, args)
-        args = system.update(y, args)
-        s = warm.stats(st)
-        steps, evals, hvps = steps + n, evals + s["force_evals"], hvps + s["hvps"]
+        args, totals = _warm_done(warm, system, y, args, st, n, totals)
     y, args, st, result, n = iterate(solver, system, y, args)
-    y, result, stats, nbrs, delta = _finish(solver, system, y, args, st, result, n, steps,
-                                            evals, hvps)
-    return y, result, stats, args
+    return _finish(solver, system, y, args, st, result, n, *totals)
+
+
+def _warm_done(warm, system, y, args, st, n, totals):
+    """After a warm start's loop: the args brought up to date at y, and the totals
+    (steps, force evaluations, Hessian-vector products) with its own added."""
+    s = warm.stats(st)
+    return system.update(y, args), (totals[0] + n, totals[1] + s["force_evals"],
+                                    totals[2] + s["hvps"])
 
 
 def _finish(solver, system, y, args, st, result, n, steps, evals, hvps):
@@ -226,9 +231,7 @@ def _setting_args(solver, dtype):
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0, 5))
 def _equilibrium(blank, problem, params, x0, nbrs, skin, settings):
-    solver = _fill(blank, settings)
-    y, result, stats, args = _run(solver, problem, params, x0, nbrs, skin)
-    return y, result, stats, args["nbrs"], args["delta"]
+    return _run(_fill(blank, settings), problem, params, x0, nbrs, skin)
 
 
 def _eq_fwd(blank, problem, params, x0, nbrs, skin, settings):
@@ -270,19 +273,21 @@ def _solve_stretches(blank, problem, params, x0, nbrs, skin, whole_lists, settin
     callback in any program, so that JAX's persistent compilation cache keeps them (it
     stores no program that holds one: a warm `jaxvalve simulate` compiled its solve anew,
     16.8 s of compilation against 5.8 s without the callback)."""
-    name = lambda i: type(_phase(blank, settings, i)).__name__
     n_phases = len(getattr(blank, "warm_start", None) or ()) + 1
     args = _stretch_args(blank, problem, params, x0, nbrs, skin, whole_lists, settings)
-    y, totals = x0, jnp.zeros(3, jnp.int32)
+    y, totals = x0, (jnp.asarray(0),) * 3
+    every = progress.BEACON_EVERY
     for i in range(n_phases):
+        name = type(_phase(blank, settings, i)).__name__
         c, running = _stretch_start(blank, i, problem, params, skin, whole_lists, settings,
                                     y, args)
+        n = int(c[3])
         while bool(running):
-            stop = (int(c[3]) // progress.BEACON_EVERY + 1) * progress.BEACON_EVERY
             c, running, res = _stretch(blank, i, problem, params, skin, whole_lists,
-                                       settings, c, jnp.asarray(stop, jnp.int32))
-            if int(c[3]) % progress.BEACON_EVERY == 0:
-                progress.beacon(c[3], res, name(i))
+                                       settings, c, jnp.asarray((n // every + 1) * every))
+            n = int(c[3])
+            if n % every == 0:
+                progress.beacon(n, res, name)
         out = _stretch_end(blank, i, problem, params, skin, whole_lists, settings, c, totals)
         if i + 1 < n_phases:
             y, args, totals = out
@@ -324,16 +329,15 @@ def _stretch(blank, i, problem, params, skin, whole_lists, settings, c, stop):
 
 @functools.partial(jax.jit, static_argnums=(0, 1, 4, 5))
 def _stretch_end(blank, i, problem, params, skin, whole_lists, settings, c, totals):
-    """A warm start's (y, args, totals) for the next loop, or the solve's output; totals
-    (3,): the steps, force evaluations and Hessian-vector products of the loops before."""
+    """A warm start's (y, args, totals) for the next loop, or the solve's output; totals:
+    the steps, force evaluations and Hessian-vector products of the loops before
+    (`_warm_done`)."""
     solver = _phase(blank, settings, i)
     system = make_system(problem, params)
     y, args, st, result, n = loop_end(c)
     with _lists(whole_lists):
         if i < len(getattr(blank, "warm_start", None) or ()):
-            s = solver.stats(st)
-            done = jnp.stack([n, s["force_evals"], s["hvps"]]).astype(totals.dtype)
-            return y, system.update(y, args), totals + done
+            return (y, *_warm_done(solver, system, y, args, st, n, totals))
         return _finish(solver, system, y, args, st, result, n, *totals)
 
 
