@@ -325,3 +325,110 @@ def test_element_stiffness_bound_is_tight_on_a_stretched_sheet(name):
     q = np.asarray(assembly.spectral_bound(jnp.asarray(Hs))) / exact
     assert np.all(q >= 1 - 1e-12)
     assert np.all(q <= (1 + 1e-3 if name == "stvk" else 1.05))
+
+
+def _squashed_square(s, E=0.8):
+    """Energy of a unit square (two triangles) of linear springs squashed to height s, and
+    its closed form: per triangle a spring unchanged, one at strain s - 1 and the diagonal
+    at sqrt((1 + s^2) / 2) - 1, each H A_T E eps^2 / 2 (A_T = 1/2); below the collapse
+    threshold both triangles (J = s) add H A_T E b(s)."""
+    p, t = meshgen.rectangle(1.0, 1.0, 1, 1)
+    mat = MassSpring.linear(E)
+    prob, params, r = _setup(mat, p, t)
+    x = jnp.asarray(meshgen.lift(p * np.array([1.0, s])))
+    springs = (s - 1.0) ** 2 + (np.sqrt((1 + s * s) / 2) - 1.0) ** 2
+    J_hat = MassSpring.collapse_J
+    b = -(s - J_hat) ** 2 * np.log(s / J_hat) if s < J_hat else 0.0
+    expected = 2 * H * 0.5 * (0.5 * E * springs + E * b)
+    return float(_energy(x, prob, params, r)), expected, (x, prob, params, r)
+
+
+@pytest.mark.parametrize("s", [1.0, 0.5, 0.1, 0.08, 0.03, 0.002])
+def test_mass_spring_collapse_barrier_matches_closed_form(s):
+    """A square of springs squashed to height s: the springs' energy alone down to the
+    threshold J = 0.1, the barrier added below it; it grows without bound as s -> 0."""
+    e, expected, _ = _squashed_square(s)
+    np.testing.assert_allclose(e, expected, rtol=1e-12, atol=1e-15)
+
+
+def test_mass_spring_collapse_barrier_is_c2_at_its_threshold_and_pushes_apart():
+    """b(J) = -(J - J_hat)^2 ln(J / J_hat), J = sqrt(det C): value, slope and curvature
+    tend to 0 at J_hat (a C2 join with the springs' energy), the slope is the closed form
+    below it and negative (the force opens the triangle), and it is exactly zero above."""
+    from jaxvalve.mechanics.materials import collapse_barrier
+    J_hat = MassSpring.collapse_J
+
+    def b(J):
+        C = jnp.stack([jnp.stack([J * J, 0.0]), jnp.stack([0.0, 1.0])])[None]
+        return collapse_barrier(C, J_hat)[0]
+
+    db, d2b = jax.grad(b), jax.grad(jax.grad(b))
+    for J in (0.02, 0.05, 0.09):
+        slope = -2 * (J - J_hat) * np.log(J / J_hat) - (J - J_hat) ** 2 / J
+        np.testing.assert_allclose(float(db(J)), slope, rtol=1e-12)
+        assert float(db(J)) < 0 and float(d2b(J)) > 0
+    # just below J_hat, with D = J_hat - J: b ~ D^3 / J_hat, b' ~ -3 D^2 / J_hat,
+    # b'' ~ 6 D / J_hat, all -> 0 (leading order; relative error ~ D / J_hat)
+    D = 1e-7
+    for got, lead in ((b(J_hat - D), D**3 / J_hat), (db(J_hat - D), -3 * D**2 / J_hat),
+                      (d2b(J_hat - D), 6 * D / J_hat)):
+        np.testing.assert_allclose(float(got), lead, rtol=1e-4)
+    for J in (J_hat, 0.3, 1.0, 1.7):
+        assert float(b(J)) == 0.0 and float(db(J)) == 0.0 and float(d2b(J)) == 0.0
+    assert float(b(1e-200)) > float(b(1e-3)) > float(b(0.05))
+
+
+def test_mass_spring_collapsed_triangle_has_infinite_energy_and_finite_force():
+    _, _, (x, prob, params, r) = _squashed_square(1.0)
+    flat = x.at[:, 1].set(0.0)                # both triangles collapsed onto a line
+    assert np.isinf(float(_energy(flat, prob, params, r)))
+    assert np.all(np.isfinite(np.asarray(jax.grad(_energy)(flat, prob, params, r))))
+
+
+def test_check_grads_on_the_spring_energy_with_the_collapse_barrier_active():
+    p, t = meshgen.rectangle(2.0, 1.0, 2, 1)
+    mat = MODELS["mass-spring"]
+    _, params, r = _setup(mat, p, t)
+    rng = np.random.default_rng(3)
+    Fd = np.diag([1.0, 0.05, 0.0])[:, :2][None] + 0.01 * rng.normal(size=(len(t), 3, 2))
+    C = jnp.asarray(np.swapaxes(Fd, 1, 2) @ Fd)
+    from jaxvalve.mechanics.materials import collapse_barrier
+    assert np.all(np.asarray(collapse_barrier(C, mat.collapse_J)) > 0)     # all active
+    # det C ~ 2.5e-3: difference steps well below it
+    check_grads(lambda c: jnp.sum(mat.energy_density(c, r.springs)), (C,), order=2,
+                modes=["fwd", "rev"], atol=1e-6, rtol=1e-6, eps=1e-7)
+
+
+def test_mass_spring_collapse_barrier_holds_a_sliver_apex_off_its_base():
+    """A sliver (apex v 0.05 mm above a 2 mm base, angle 2.9 degrees) whose apex spring to
+    a node above is compressed (that node moved from 1 to 0.5 mm): along v's way down to
+    the base the springs alone lose energy all the way to the collapse (J = 0); with the
+    barrier the energy has an interior minimum at 0 < J < 0.1, an equilibrium with zero
+    force on v, and grows without bound towards the collapse."""
+    from scipy.optimize import minimize_scalar
+    from jaxvalve.mechanics import materials as M
+
+    p = np.array([[0, 0], [2, 0], [1, 0.05], [1, 1], [1, -1.0]])
+    t = np.array([[0, 1, 2], [0, 2, 3], [2, 1, 3], [0, 4, 1]])       # t[0]: the sliver
+    prob, params, r = _setup(MassSpring.linear(1.0), p, t)
+    x = np.c_[p, np.zeros(5)]
+    x[3, 1] = 0.5
+
+    def energy(y):
+        return _energy(jnp.asarray(x).at[2, 1].set(y), prob, params, r)
+
+    grad_y = jax.grad(lambda y: energy(y))
+    ys = np.geomspace(0.05, 1e-6, 40)
+    e = np.array([float(energy(y)) for y in ys])
+    J = ys / 0.05
+    assert np.all(np.diff(e[J >= 0.1]) < 0)           # down to J = 0.1 it pays to collapse
+    springs = e - np.array([float(H * 0.05 * M.collapse_barrier(
+        jnp.asarray([[[1.0, 0.0], [0.0, (y / 0.05) ** 2]]]), 0.1)[0]) for y in ys])
+    assert np.all(np.diff(springs) < 0)                # the springs alone: all the way down
+    assert np.isinf(float(energy(0.0)))                # collapsed: no way through
+    best = minimize_scalar(lambda y: float(energy(y)), bounds=(1e-7, 0.005),
+                           method="bounded", options=dict(xatol=1e-12))
+    J_star = best.x / 0.05
+    assert 1e-4 < J_star < 0.1
+    assert best.fun < e[-1] and best.fun < e[J >= 0.1].min()
+    assert abs(float(grad_y(best.x))) < 1e-6 * abs(float(grad_y(0.05)))

@@ -56,6 +56,22 @@ def invariants(C):
     return tr, det
 
 
+def collapse_barrier(C, J_hat):
+    """b (M,) = -(J - J_hat)^2 ln(J / J_hat) for J = sqrt(det C) below J_hat, else 0
+    (exactly, with a zero gradient); +inf where det C <= 1e-300 (a triangle collapsed to a
+    line).  Evaluated only when a triangle is below the threshold (`lax.cond`; both
+    branches under vmap)."""
+    _, det = invariants(C)
+
+    def active(det):
+        ok = det > 1e-300
+        J = jnp.sqrt(jnp.where(ok, det, 1.0))
+        J = jnp.where(J < J_hat, J, J_hat)           # at J_hat b = 0, with a zero gradient
+        return jnp.where(ok, -(J - J_hat) ** 2 * jnp.log(J / J_hat), jnp.inf)
+
+    return jax.lax.cond(jnp.any(det < J_hat * J_hat), active, jnp.zeros_like, det)
+
+
 class Material:
     """Base class: subclasses define `energy_density` and `validate`."""
 
@@ -228,6 +244,17 @@ class MassSpring(Material):
     fibre direction (a spring along the fibres gets Ef).  ``E*_cf`` default to the fibre
     values (isotropic): with them None, no mixing is traced.
 
+    Collapse barrier: springs alone hardly resist a triangle's collapse (a triangle with an
+    angle of a few degrees can be flattened onto its base, and turned over, while its edge
+    lengths change only at second order), where the hinge's normal is undefined and every
+    solver stalls (the stress suite's sliver mesh).  A triangle whose area ratio J = A / A_0 falls below
+    `collapse_J` = 0.1 therefore gains the energy density E1 b(J), b(J) = -(J - 0.1)^2
+    ln(J / 0.1) (IPC's barrier, on the area ratio: zero with its first two derivatives at
+    J = 0.1, infinite at J = 0), as a solid's volume term would resist it.  (The same
+    barrier on J^2 is 20 times weaker at J = 0.05 and left a sliver collapsed at 3 mmHg.)
+    Above 0.1 the energy is the springs' alone, unchanged (the benchmark's closed spring
+    valve keeps J >= 0.97, Table 4's softest cell at h = 1.5 mm J >= 0.70).
+
     Linear law (`MassSpring.linear`): E2 = E3 = None (and E2_cf = E3_cf = None) selects
     psi = E1 eps^2 / 2, with no strain breaks traced.  The choice is static (the pytree
     structure), so a linear scene never compiles the piecewise law; its energy and forces
@@ -245,6 +272,8 @@ class MassSpring(Material):
     break2: Any = 0.3
     name = "mass-spring"
     needs_springs = True
+    #: area ratio A / A_0 below which a triangle's collapse barrier acts
+    collapse_J = 0.1
 
     @classmethod
     def linear(cls, E, E_cf=None):
@@ -305,11 +334,13 @@ class MassSpring(Material):
         l2s, ok = _safe_positive(l2)
         eps = jnp.where(ok, jnp.sqrt(l2s), 0.0) - 1.0
         self._check_structure()
+        barrier = self.E1 * collapse_barrier(C, self.collapse_J)
         if self.is_linear:   # static: no breaks traced
             E = self.moduli(geom.cos2)[0]
-            return jnp.sum(0.5 * E * eps**2, axis=-1)
+            return jnp.sum(0.5 * E * eps**2, axis=-1) + barrier
         E1, E2, E3 = self.moduli(geom.cos2)
-        return jnp.sum(_piecewise_psi(eps, E1, E2, E3, self.break1, self.break2), axis=-1)
+        return (jnp.sum(_piecewise_psi(eps, E1, E2, E3, self.break1, self.break2), axis=-1)
+                + barrier)
 
     def stretch_margin(self, C):
         return jnp.ones(C.shape[:-2], C.dtype)
