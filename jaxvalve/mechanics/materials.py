@@ -247,13 +247,14 @@ class MassSpring(Material):
     Collapse barrier: springs alone hardly resist a triangle's collapse (a triangle with an
     angle of a few degrees can be flattened onto its base, and turned over, while its edge
     lengths change only at second order), where the hinge's normal is undefined and every
-    solver stalls (the stress suite's sliver mesh).  A triangle whose area ratio J = A / A_0 falls below
-    `collapse_J` = 0.1 therefore gains the energy density E1 b(J), b(J) = -(J - 0.1)^2
-    ln(J / 0.1) (IPC's barrier, on the area ratio: zero with its first two derivatives at
-    J = 0.1, infinite at J = 0), as a solid's volume term would resist it.  (The same
-    barrier on J^2 is 20 times weaker at J = 0.05 and left a sliver collapsed at 3 mmHg.)
-    Above 0.1 the energy is the springs' alone, unchanged (the benchmark's closed spring
-    valve keeps J >= 0.97, Table 4's softest cell at h = 1.5 mm J >= 0.70).
+    solver stalls (the stress suite's sliver mesh).  A triangle whose area ratio
+    J = A / A_0 falls below `collapse_J` = 0.1 therefore gains the energy density E1 b(J),
+    b(J) = -(J - 0.1)^2 ln(J / 0.1) (IPC's barrier, on the area ratio: zero with its first
+    two derivatives at J = 0.1, infinite at J = 0), as a solid's volume term would resist
+    it.  (The same barrier on J^2 is 20 times weaker at J = 0.05 and left a sliver
+    collapsed at 3 mmHg.)  Above 0.1 the energy is the springs' alone, unchanged (the
+    benchmark's closed spring valve keeps J >= 0.97, Table 4's softest cell at h = 1.5 mm
+    J >= 0.70).
 
     Linear law (`MassSpring.linear`): E2 = E3 = None (and E2_cf = E3_cf = None) selects
     psi = E1 eps^2 / 2, with no strain breaks traced.  The choice is static (the pytree
