@@ -16,6 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..contact.barrier import barrier
 from ..errors import ParameterError
 
 
@@ -57,17 +58,17 @@ def invariants(C):
 
 
 def collapse_barrier(C, J_hat):
-    """b (M,) = -(J - J_hat)^2 ln(J / J_hat) for J = sqrt(det C) below J_hat, else 0
-    (exactly, with a zero gradient); +inf where det C <= 1e-300 (a triangle collapsed to a
-    line).  Evaluated only when a triangle is below the threshold (`lax.cond`; both
-    branches under vmap)."""
+    """b (M,) = J_hat^2 B(J / J_hat) = -(J - J_hat)^2 ln(J / J_hat) for J = sqrt(det C)
+    below J_hat, else 0 (exactly, with a zero gradient): the contact's IPC barrier
+    (`jaxvalve.contact.barrier.barrier`) on the area ratio; +inf where det C <= 1e-300 (a
+    triangle collapsed to a line).  Evaluated only when a triangle is below the threshold
+    (`lax.cond`; both branches under vmap)."""
     _, det = invariants(C)
 
     def active(det):
         ok = det > 1e-300
         J = jnp.sqrt(jnp.where(ok, det, 1.0))
-        J = jnp.where(J < J_hat, J, J_hat)           # at J_hat b = 0, with a zero gradient
-        return jnp.where(ok, -(J - J_hat) ** 2 * jnp.log(J / J_hat), jnp.inf)
+        return jnp.where(ok, J_hat * J_hat * barrier(J / J_hat), jnp.inf)
 
     return jax.lax.cond(jnp.any(det < J_hat * J_hat), active, jnp.zeros_like, det)
 
