@@ -28,6 +28,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..errors import ParameterError
+from ..geometry.broad_phase import ball_pairs
 from ..geometry.mesh import unique_edges
 from .barrier import collision_weights
 from .ipc_distance import (mollifier_threshold, point_triangle_distance2_np,
@@ -153,17 +154,15 @@ def _template_neighbours(tri, edges, body, ref3, gap):
     m, ne = len(tri), len(edges)
     rt = ref3[tri]
     cen = rt.mean(axis=1)
-    rad = float(np.sqrt(np.max(np.sum((rt - cen[:, None]) ** 2, axis=2))))
-    c = _ball_pairs(cen, ref3, gap + rad)
+    rad_t = np.sqrt(np.max(np.sum((rt - cen[:, None]) ** 2, axis=2), axis=1))
+    c = ball_pairs(ref3, 0.0, cen, rad_t, gap)
     c = c[body[c[:, 0]] == body[tri[c[:, 1], 0]]]
     d2 = point_triangle_distance2_np(ref3[c[:, 0]], rt[c[:, 1], 0], rt[c[:, 1], 1],
                                      rt[c[:, 1], 2])
     c = c[d2 < gap * gap]
     near_pt = np.unique(c[:, 0] * m + c[:, 1])
     a, b = ref3[edges[:, 0]], ref3[edges[:, 1]]
-    half = 0.5 * float(np.sqrt(np.max(np.sum((b - a) ** 2, axis=1))))
-    c = cKDTree(0.5 * (a + b)).query_pairs(gap + 2 * half, output_type="ndarray")
-    c = np.sort(c.reshape(-1, 2), axis=1)
+    c = ball_pairs(0.5 * (a + b), 0.5 * np.sqrt(np.sum((b - a) ** 2, axis=1)), gap=gap)
     c = c[body[edges[c[:, 0], 0]] == body[edges[c[:, 1], 0]]]
     d2 = segment_distance2_np(a[c[:, 0]], b[c[:, 0]], a[c[:, 1]], b[c[:, 1]])
     c = c[d2 < gap * gap]
@@ -188,15 +187,6 @@ def _shares_pin(pin, a, b):
     return out
 
 
-def _ball_pairs(tree_pts, query_pts, radius):
-    """(K, 2) [query index, tree index] of points within radius."""
-    if len(tree_pts) == 0 or len(query_pts) == 0:
-        return np.zeros((0, 2), np.int64)
-    m = cKDTree(query_pts).sparse_distance_matrix(cKDTree(tree_pts), radius,
-                                                  output_type="ndarray")
-    return np.column_stack([m["i"], m["j"]]).astype(np.int64)
-
-
 def pair_distances2(x, pt, ee):
     """Squared distances (mm^2) of point-triangle rows pt (P, 4) and edge-edge rows ee
     (Q, 4) at the state x (N, 3)."""
@@ -215,7 +205,10 @@ def build_pairs(topo: BarrierTopology, x, cutoff: float, dx=None) -> BarrierPair
     2 max |dx|).  A pair of one body then needs only to be closer than d_hat plus the
     largest relative move of its nodes, max |dx_a - dx_b| (its distance cannot shrink by
     more along the move): the neighbours within a sheet, which move nearly together,
-    drop out, where the bound 2 max |dx| would list them all."""
+    drop out, where the bound 2 max |dx| would list them all.
+
+    The pairs come sorted (point-triangle by node, then triangle; edge-edge by their edge
+    rows), whatever order the broad phase found them in."""
     x = np.asarray(x, float)
     if not np.all(np.isfinite(x)):
         raise ParameterError("x holds non-finite positions; contact needs finite coordinates")
@@ -226,7 +219,6 @@ def build_pairs(topo: BarrierTopology, x, cutoff: float, dx=None) -> BarrierPair
     xt = x[tri]
     cen = xt.mean(axis=1)
     rad_t = np.sqrt(np.max(np.sum((xt - cen[:, None]) ** 2, axis=2), axis=1))   # (M,)
-    rad = float(rad_t.max())
     if dx is not None:
         dx = np.asarray(dx, float)
         reach = max(cutoff - 2.0 * float(np.max(np.linalg.norm(dx, axis=1))), 0.0)
@@ -248,8 +240,8 @@ def build_pairs(topo: BarrierTopology, x, cutoff: float, dx=None) -> BarrierPair
         rel = np.linalg.norm(ma[0][ia] - mb[0][ib], axis=1) + ma[1][ia] + mb[1][ib]
         return np.minimum(cutoff, reach + 1.001 * rel + 1e-9)
 
-    # point-triangle: nodes against triangle centroids, then the exact distance
-    cand = _ball_pairs(cen, x, cutoff + rad)
+    # point-triangle: nodes against the triangles' bounding balls, then the exact distance
+    cand = ball_pairs(x, 0.0, cen, rad_t, cutoff)
     node, t = cand[:, 0], cand[:, 1]
     other = topo.body[node] != topo.tri_body[t]
     lim = np.full(len(node), cutoff)
@@ -266,19 +258,18 @@ def build_pairs(topo: BarrierTopology, x, cutoff: float, dx=None) -> BarrierPair
     rows = np.column_stack([node, tri[t]])
     keep = ~(topo.fixed[node] & np.all(topo.fixed[tri[t]], axis=1))
     keep &= ~_shares_pin(topo.pin, rows[:, :1], rows[:, 1:])
-    rows, lim = rows[keep], lim[keep]
+    rows, lim, t = rows[keep], lim[keep], t[keep]
     d2 = point_triangle_distance2_np(x[rows[:, 0]], x[rows[:, 1]], x[rows[:, 2]],
                                      x[rows[:, 3]])
-    sel = d2 < lim * lim
+    sel = np.flatnonzero(d2 < lim * lim)
+    sel = sel[np.argsort(rows[sel, 0] * len(tri) + t[sel], kind="stable")]   # (node, t)
     pt, pt_d2 = rows[sel], d2[sel]
-    # edge-edge: every pair of edges whose midpoints are within cutoff + 2 max half-length
-    # (one k-d tree query, pairs i < j), of different bodies or, with self-contact (the
-    # valve's setting), of one; without it the pairs of one body are listed and dropped
+    # edge-edge: every pair of edges whose bounding balls (about the midpoints) come
+    # within cutoff (pairs i < j), of different bodies or, with self-contact (the valve's
+    # setting), of one; without it the pairs of one body are listed and dropped
     mid = 0.5 * (x[edges[:, 0]] + x[edges[:, 1]])
     half_e = 0.5 * np.linalg.norm(x[edges[:, 1]] - x[edges[:, 0]], axis=1)      # (E,)
-    half = float(half_e.max())
-    ea_eb = cKDTree(mid).query_pairs(cutoff + 2 * half, output_type="ndarray")
-    ea_eb = ea_eb.reshape(-1, 2).astype(np.int64)
+    ea_eb = ball_pairs(mid, half_e, gap=cutoff)
     own = topo.edge_body[ea_eb[:, 0]] == topo.edge_body[ea_eb[:, 1]]
     if not topo.self_contact:
         ea_eb, own = ea_eb[~own], own[~own]
@@ -305,7 +296,8 @@ def build_pairs(topo: BarrierTopology, x, cutoff: float, dx=None) -> BarrierPair
     keep &= ~_shares_pin(topo.pin, rows[:, :2], rows[:, 2:])
     rows, ea_eb, lim = rows[keep], ea_eb[keep], lim[keep]
     d2 = segment_distance2_np(x[rows[:, 0]], x[rows[:, 1]], x[rows[:, 2]], x[rows[:, 3]])
-    sel = d2 < lim * lim
+    sel = np.flatnonzero(d2 < lim * lim)
+    sel = sel[np.argsort(ea_eb[sel, 0] * len(edges) + ea_eb[sel, 1], kind="stable")]
     ee, ee_d2, ea_eb = rows[sel], d2[sel], ea_eb[sel]
     return BarrierPairs(
         pt=pt, pt_w=topo.node_w[pt[:, 0]], pt_d2=pt_d2, ee=ee,

@@ -18,16 +18,16 @@ so a vertex within ~tol * l of the other plane is treated as lying on it.  Decis
 configurations that touch only within rounding may go either way.
 
 `leaflets_intersect` checks all pairs of triangles of different leaflets behind a
-bounding-sphere / axis-aligned-box broad phase (scipy cKDTree on barycentres);
+bounding-sphere / axis-aligned-box broad phase (`jaxvalve.geometry.broad_phase` on
+barycentres);
 `self_intersections` does the same for triangles of one leaflet that share no vertex.
 Lengths in mm.  This module is independent of `jaxvalve.contact`.
 """
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
-
 from ..errors import MeshError
+from ..geometry.broad_phase import ball_pairs
 
 __all__ = ["triangles_intersect", "leaflets_intersect", "self_intersections",
            "candidate_triangle_pairs"]
@@ -162,8 +162,7 @@ def candidate_triangle_pairs(x, triangles, body=None, same_body=False):
     xt = x[tri]
     c = xt.mean(axis=1)
     R = np.sqrt(np.max(_dot(xt - c[:, None], xt - c[:, None]), axis=1))
-    pairs = cKDTree(c).query_pairs(2.0 * R.max() * (1 + 1e-12) + 1e-300,
-                                   output_type="ndarray")
+    pairs = ball_pairs(c, R * (1 + 1e-12))
     if pairs.size == 0:
         return np.zeros((0, 2), np.int64)
     i, j = pairs[:, 0], pairs[:, 1]
