@@ -1,4 +1,5 @@
-"""Node-to-leaflet distances ("gap field") with a k-d tree broad phase (NumPy, host side).
+"""Node-to-leaflet distances ("gap field") behind a broad phase (NumPy, host side): below a
+cutoff the one of `jaxvalve.geometry.broad_phase`, without one a k-d tree per leaflet.
 
 gap[n, j] = unsigned distance (mm) from node n to the surface of leaflet j (the minimum
 point-triangle distance over j's triangles), exact where it is below `cutoff` and +inf
@@ -12,6 +13,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..contact.geometry import point_triangle_distance_np
+from ..geometry.broad_phase import ball_pairs
 
 __all__ = ["gap_field", "candidate_pairs"]
 
@@ -34,21 +36,19 @@ def candidate_pairs(x, tri, body, radius):
     """(node, triangle) pairs of different leaflets with |x_n - c_T| < radius + R_T.
 
     x (N, 3) mm, tri (M, 3), body (N,); radius (mm) may be a scalar or (N,) per node.
-    Returns (nodes (P,), triangles (P,)) int64."""
+    Returns (nodes (P,), triangles (P,)) int64, sorted by node, then triangle.  The
+    candidates come from the broad phase by size class
+    (`jaxvalve.geometry.broad_phase.ball_pairs`)."""
     c, R = _centres(x, tri)
-    tree = cKDTree(c)
-    if np.ndim(radius) == 0:
-        sd = cKDTree(x).sparse_distance_matrix(tree, float(radius) + R.max(),
-                                               output_type="ndarray")
-        rows, cols = sd["i"].astype(np.int64), sd["j"].astype(np.int64)
-    else:
-        rows, cols = _flatten(tree.query_ball_point(x, np.asarray(radius) + R.max(),
-                                                    return_sorted=False))
+    p = ball_pairs(x, radius, c, R)
+    rows, cols = p[:, 0], p[:, 1]
     keep = body[tri[cols, 0]] != body[rows]
     rows, cols = rows[keep], cols[keep]
     r = radius[rows] if np.ndim(radius) else radius
     keep = np.sum((x[rows] - c[cols]) ** 2, axis=1) < (r + R[cols]) ** 2
-    return rows[keep], cols[keep]
+    rows, cols = rows[keep], cols[keep]
+    order = np.argsort(rows * len(tri) + cols, kind="stable")
+    return rows[order], cols[order]
 
 
 def gap_field(x, tri, body, cutoff=np.inf):

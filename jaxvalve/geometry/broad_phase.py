@@ -1,6 +1,7 @@
 """Broad phase: which pairs of bounding balls come within a gap of each other (the
-barrier contact's pair lists, `jaxvalve.contact.ipc_pairs`, and the crossing check,
-`jaxvalve.valve.intersect`).
+barrier contact's pair lists, `jaxvalve.contact.ipc_pairs`, the crossing check,
+`jaxvalve.valve.intersect`, and the coaptation metrics' node-triangle candidates,
+`jaxvalve.coaptation.gaps`).
 
 One k-d tree query with the largest radius lists every pair within ``gap + 2 max r``,
 which is right while the elements are of one size.  A ballooned element (a leaflet
