@@ -14,7 +14,10 @@ their own largest radii, so that a large ball widens only the queries of its own
 
 The result is a superset for the caller's exact test: every pair of balls within the
 gap, and some farther ones (up to the largest radii of their two classes), in no
-particular order.
+particular order.  It suits element balls, of one size but for a few outliers; radii
+spread evenly over several octaves (per-point search radii) are each queried with up to
+twice their own, and a per-point query serves them better (`jaxvalve.coaptation.gaps`,
+its exact-everywhere branch: 4.7x slower through this function).
 """
 from __future__ import annotations
 
