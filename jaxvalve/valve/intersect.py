@@ -174,7 +174,7 @@ def candidate_triangle_pairs(x, triangles, body=None, same_body=False):
     if body is None or same_body:
         shared = np.any(tri[i][:, :, None] == tri[j][:, None, :], axis=(1, 2))
         keep &= ~shared
-    i, j = np.minimum(i[keep], j[keep]), np.maximum(i[keep], j[keep])
+    i, j = i[keep], j[keep]                      # i < j (ball_pairs)
     out = np.stack([i, j], axis=1)
     return out[np.lexsort((out[:, 1], out[:, 0]))]
 
