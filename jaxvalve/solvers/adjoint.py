@@ -208,7 +208,8 @@ def _solve_barrier_lu(problem, params, x, pairs, g, rtol):
 def solve_lu(problem, params, x, nbrs, g, *, rtol=1e-10, maxiter=300):
     """mu (N, 3) with K^T mu = g on the free dofs (K = -dR/dx at the equilibrium x); mu is
     zero on fixed nodes.  GMRES (scipy) on exact VJPs, preconditioned by the sparse LU of
-    the assembled approximation of K^T.  Returns (mu, `AdjointReport`)."""
+    the assembled K^T (exact where `tangent.assemble` holds every term of the
+    residual, as on the soft-min contact: then one iteration).  Returns (mu, `AdjointReport`)."""
     from ..contact.ipc_pairs import BarrierPairs
     if isinstance(nbrs, BarrierPairs):
         return _solve_barrier_lu(problem, params, x, nbrs, g, rtol)
