@@ -397,7 +397,8 @@ class Evaluator:
         """Derivatives of the smooth metrics at a converged evaluation: {metric: {param:
         d metric / d param}} for every metric of the closed loads, with param r, a, b (mm)
         and the material's moduli (e.g. E, nu for StVK; MPa^-1 for a modulus).  One LU
-        adjoint solve per metric (`jaxvalve.solvers.adjoint.solve_lu`); raises
+        adjoint solve per metric (`jaxvalve.solvers.adjoint.solve_lu`, one factorisation
+        per closure for all of them); raises
         `ConvergenceError` when ``ev`` did not converge or an adjoint solve failed."""
         from jaxvalve.solvers.adjoint import solve_lu
 
@@ -414,9 +415,11 @@ class Evaluator:
             x0, sol = ev.states[load]
             J_rab, J_x = self._metric_jac_jit(rab, load, sol.x, ev.plans[load])
             params = self.base[load].replace(ref=self._ref_jit(th))
+            # one assembly and factorisation for every metric of this load
+            mus, _ = solve_lu(self.valve.problem, params, sol.x, sol.nbrs,
+                              np.asarray(J_x)[:len(names)])
             for k, name in enumerate(names):
-                mu, _ = solve_lu(self.valve.problem, params, sol.x, sol.nbrs, J_x[k])
-                mu = jnp.asarray(mu)
+                mu = jnp.asarray(mus[k])
                 g_rab, gp = self.pullback(rab, load, sol.x, sol.nbrs, mu, True, params)
                 g = np.asarray(J_rab[k]) + np.asarray(g_rab)
                 d = dict(r=float(g[0]), a=float(g[1]), b=float(g[2]))

@@ -80,6 +80,11 @@ def test_adjoint_derivatives_match_central_differences(closed):
     g[up, 2] = 1.0 / len(up)
     mu, rep = adjoint.solve_lu(prob, params, x, sol.nbrs, g)
     assert rep.residual < 1e-8
+    # several right-hand sides, one factorisation: each the single solve's
+    mus, reps = adjoint.solve_lu(prob, params, x, sol.nbrs, np.stack([2.0 * g, 0.0 * g, g]))
+    assert mus.shape == (3,) + x.shape and len(reps) == 3
+    np.testing.assert_allclose(mus[0], 2.0 * mu, rtol=1e-12, atol=1e-14 * np.abs(mu).max())
+    assert np.all(mus[1] == 0.0) and np.array_equal(mus[2], mu)
     _, gp = adjoint.residual_vjp(jnp.asarray(x), prob, params, sol.nbrs, jnp.asarray(mu))
     # d/dE: the modulus, warm-started re-solves at E (1 +- s)
     s, E = 1e-4, 1.0

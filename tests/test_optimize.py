@@ -139,9 +139,14 @@ def test_assembled_stiffness_with_soft_min_contact_is_the_exact_jacobian(evaluat
             err = lambda M: np.linalg.norm(M.T @ v[free] - ktv) / np.linalg.norm(ktv)
             assert err(K) < 1e-12, (load, err(K))
             assert err(K0) > 1e-3, (load, err(K0))
-        g = jnp.asarray(rng.normal(size=(prob.n_nodes, 3)))
-        _, rep = solve_lu(prob, params, sol.x, sol.nbrs, g)
+        g = rng.normal(size=(prob.n_nodes, 3))
+        mu, rep = solve_lu(prob, params, sol.x, sol.nbrs, g)
         assert rep.iterations <= 1 and rep.residual < 1e-12, rep
+        # several right-hand sides share the factorisation: each the single solve's
+        mus, reps = solve_lu(prob, params, sol.x, sol.nbrs, np.stack([g, -g]))
+        assert [r.iterations for r in reps] == [1, 1]
+        np.testing.assert_allclose(mus, np.stack([mu, -mu]), rtol=0,
+                                   atol=1e-13 * np.abs(mu).max())
 
 
 def test_metric_sensitivities_to_template_and_modulus_match_central_differences(evaluator):

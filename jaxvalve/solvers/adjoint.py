@@ -178,52 +178,61 @@ def _barrier_residual_vjp(x, problem, params, rows, v, n_edges):
     return jax.vjp(R, x, params)[1](v)
 
 
-def _solve_barrier_lu(problem, params, x, pairs, g, rtol):
+def _solve_barrier_lu(problem, params, x, pairs, gs, rtol):
     """`solve_lu` on the barrier contact: the exact Jacobian's sparse LU (module
-    docstring)."""
+    docstring), for the right-hand sides gs (k, N, 3)."""
     from .barrier_newton import _Model
     t0 = time.perf_counter()
-    free = np.asarray(problem.free)
-    fdof = np.repeat(free, 3)
+    fdof = np.repeat(np.asarray(problem.free), 3)
     N = problem.n_nodes
     _, Kx = _Model(problem, params, None).tangent(np.asarray(x, float), pairs, exact=True)
-    b = np.asarray(g, float).reshape(-1)[fdof]
-    nb = float(np.linalg.norm(b))
-    if nb == 0.0:
-        return np.zeros((N, 3)), AdjointReport(0, 0.0, time.perf_counter() - t0, Kx.nnz)
-    mu_f = spla.splu(Kx.T.tocsc(), permc_spec="MMD_AT_PLUS_A").solve(b)
-    mu = np.zeros(3 * N)
-    mu[fdof] = mu_f
-    # the check: K^T mu by the residual's VJP, independent of the assembled matrix
-    gx, _ = residual_vjp(jnp.asarray(x), problem, params, pairs, jnp.asarray(mu.reshape(N, 3)))
-    res = float(np.linalg.norm(-np.asarray(gx).reshape(-1)[fdof] - b) / nb)
-    rep = AdjointReport(0, res, time.perf_counter() - t0, int(Kx.nnz))
-    if not np.isfinite(res) or res > 100 * rtol:
-        raise ConvergenceError(f"adjoint solve on the barrier contact: the exact Jacobian's "
-                               f"solution has a relative residual of {res:.3e} by the "
-                               f"residual's VJP (tolerance {100 * rtol:g})")
-    return mu.reshape(N, 3), rep
+    lu = spla.splu(Kx.T.tocsc(), permc_spec="MMD_AT_PLUS_A")
+    mus, reps = [], []
+    for g in gs:
+        b = np.asarray(g, float).reshape(-1)[fdof]
+        nb = float(np.linalg.norm(b))
+        mu = np.zeros(3 * N)
+        if nb == 0.0:
+            mus.append(mu.reshape(N, 3))
+            reps.append(AdjointReport(0, 0.0, time.perf_counter() - t0, int(Kx.nnz)))
+            continue
+        mu[fdof] = lu.solve(b)
+        # the check: K^T mu by the residual's VJP, independent of the assembled matrix
+        gx, _ = residual_vjp(jnp.asarray(x), problem, params, pairs,
+                             jnp.asarray(mu.reshape(N, 3)))
+        res = float(np.linalg.norm(-np.asarray(gx).reshape(-1)[fdof] - b) / nb)
+        if not np.isfinite(res) or res > 100 * rtol:
+            raise ConvergenceError(f"adjoint solve on the barrier contact: the exact "
+                                   f"Jacobian's solution has a relative residual of "
+                                   f"{res:.3e} by the residual's VJP (tolerance "
+                                   f"{100 * rtol:g})")
+        mus.append(mu.reshape(N, 3))
+        reps.append(AdjointReport(0, res, time.perf_counter() - t0, int(Kx.nnz)))
+    return np.stack(mus), tuple(reps)
 
 
 def solve_lu(problem, params, x, nbrs, g, *, rtol=1e-10, maxiter=300):
     """mu (N, 3) with K^T mu = g on the free dofs (K = -dR/dx at the equilibrium x); mu is
     zero on fixed nodes.  GMRES (scipy) on exact VJPs, preconditioned by the sparse LU of
     the assembled K^T (exact where `tangent.assemble` holds every term of the
-    residual, as on the soft-min contact: then one iteration).  Returns (mu, `AdjointReport`)."""
+    residual, as on the soft-min contact: then one iteration).  Returns (mu, `AdjointReport`).
+
+    g (k, N, 3): k right-hand sides (e.g. one per metric) share one assembly and
+    factorisation; then mu (k, N, 3) and a tuple of k reports (seconds counted from the
+    start of the call)."""
     from ..contact.ipc_pairs import BarrierPairs
+    g = np.asarray(g, float)
+    many = g.ndim == 3
+    gs = g if many else g[None]
     if isinstance(nbrs, BarrierPairs):
-        return _solve_barrier_lu(problem, params, x, nbrs, g, rtol)
+        mus, reps = _solve_barrier_lu(problem, params, x, nbrs, gs, rtol)
+        return (mus, reps) if many else (mus[0], reps[0])
     t0 = time.perf_counter()
     x = jnp.asarray(x)
-    free = np.asarray(problem.free)
-    fdof = np.repeat(free, 3)
+    fdof = np.repeat(np.asarray(problem.free), 3)
     N = problem.n_nodes
     K = assemble(problem, params, x, nbrs)
     lu = spla.splu(K.T.tocsc(), permc_spec="MMD_AT_PLUS_A")
-    b = np.asarray(g, float).reshape(-1)[fdof]
-    nb = float(np.linalg.norm(b))
-    if nb == 0.0:
-        return np.zeros((N, 3)), AdjointReport(0, 0.0, time.perf_counter() - t0, K.nnz)
 
     def KT(vf):
         v = np.zeros(3 * N)
@@ -231,17 +240,28 @@ def solve_lu(problem, params, x, nbrs, g, *, rtol=1e-10, maxiter=300):
         gx, _ = residual_vjp(x, problem, params, nbrs, jnp.asarray(v.reshape(N, 3)))
         return -np.asarray(gx).reshape(-1)[fdof]
 
-    A = spla.LinearOperator((b.size, b.size), matvec=KT, dtype=float)
-    M = spla.LinearOperator((b.size, b.size), matvec=lu.solve, dtype=float)
-    count = [0]
-    mu_f, _ = spla.gmres(A, b, M=M, rtol=rtol, atol=0.0, restart=60, maxiter=maxiter // 60 + 1,
-                         callback=lambda r: count.__setitem__(0, count[0] + 1),
-                         callback_type="pr_norm")
-    res = float(np.linalg.norm(KT(mu_f) - b) / nb)
-    rep = AdjointReport(count[0], res, time.perf_counter() - t0, int(K.nnz))
-    if not np.isfinite(res) or res > 100 * rtol:
-        raise ConvergenceError(f"adjoint solve did not converge: relative residual {res:.3e} "
-                               f"after {count[0]} GMRES iterations (tolerance {rtol:g})")
-    mu = np.zeros(3 * N)
-    mu[fdof] = mu_f
-    return mu.reshape(N, 3), rep
+    A = spla.LinearOperator((K.shape[0], K.shape[0]), matvec=KT, dtype=float)
+    M = spla.LinearOperator(K.shape, matvec=lu.solve, dtype=float)
+    mus, reps = [], []
+    for gi in gs:
+        b = gi.reshape(-1)[fdof]
+        nb = float(np.linalg.norm(b))
+        mu = np.zeros(3 * N)
+        if nb == 0.0:
+            mus.append(mu.reshape(N, 3))
+            reps.append(AdjointReport(0, 0.0, time.perf_counter() - t0, int(K.nnz)))
+            continue
+        count = [0]
+        mu_f, _ = spla.gmres(A, b, M=M, rtol=rtol, atol=0.0, restart=60,
+                             maxiter=maxiter // 60 + 1,
+                             callback=lambda r: count.__setitem__(0, count[0] + 1),
+                             callback_type="pr_norm")
+        res = float(np.linalg.norm(KT(mu_f) - b) / nb)
+        if not np.isfinite(res) or res > 100 * rtol:
+            raise ConvergenceError(f"adjoint solve did not converge: relative residual "
+                                   f"{res:.3e} after {count[0]} GMRES iterations "
+                                   f"(tolerance {rtol:g})")
+        mu[fdof] = mu_f
+        mus.append(mu.reshape(N, 3))
+        reps.append(AdjointReport(count[0], res, time.perf_counter() - t0, int(K.nnz)))
+    return (np.stack(mus), tuple(reps)) if many else (mus[0], reps[0])
