@@ -63,6 +63,18 @@ class BlockAssembler:
         return sp.csr_matrix((blocks[keep], (rows[keep], cols[keep])),
                              shape=(self.nf, self.nf))
 
+    def coo_node_pairs(self, blocks, ni, nj):
+        """CSR (nf, nf) of the 3x3 blocks (T, 3, 3) at rows of node ni (T,) and columns of
+        node nj (T,) (coupling blocks that are not over one node tuple, e.g. the soft
+        minimum's group terms); repeated entries are summed."""
+        blocks = np.asarray(blocks)
+        rows = self.red[3 * np.asarray(ni)[:, None] + np.arange(3)]
+        cols = self.red[3 * np.asarray(nj)[:, None] + np.arange(3)]
+        r = np.broadcast_to(rows[:, :, None], blocks.shape)
+        c = np.broadcast_to(cols[:, None, :], blocks.shape)
+        keep = (r >= 0) & (c >= 0)
+        return sp.csr_matrix((blocks[keep], (r[keep], c[keep])), shape=(self.nf, self.nf))
+
     def pattern(self, node_sets):
         """The fixed sparsity pattern (`BlockPattern`) of blocks over the node tuples of
         ``node_sets`` (a list of (B_i, n_i) arrays), sorted once: the barrier solver's
@@ -222,12 +234,7 @@ def _group_outer(asm: "BlockAssembler", n_nodes: int, g, nodes, A, B, alpha, bet
     ga, gb = alpha[grp[i]][:, None, None], beta[grp[i]][:, None, None]
     outer = lambda P, Q: P[i][:, :, None] * Q[j][:, None, :]
     blocks = ga * outer(Av, Av) + gb * (outer(Av, Bv) + outer(Bv, Av))
-    rows = asm.red[3 * nd[i][:, None] + np.arange(3)]
-    cols = asm.red[3 * nd[j][:, None] + np.arange(3)]
-    r = np.broadcast_to(rows[:, :, None], blocks.shape)
-    cc = np.broadcast_to(cols[:, None, :], blocks.shape)
-    m = (r >= 0) & (cc >= 0)
-    return sp.csr_matrix((blocks[m], (r[m], cc[m])), shape=(asm.nf, asm.nf))
+    return asm.coo_node_pairs(blocks, nd[i], nd[j])
 
 
 @quick_jit
