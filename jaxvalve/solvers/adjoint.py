@@ -178,37 +178,63 @@ def _barrier_residual_vjp(x, problem, params, rows, v, n_edges):
     return jax.vjp(R, x, params)[1](v)
 
 
-def _solve_barrier_lu(problem, params, x, pairs, gs, rtol):
-    """`solve_lu` on the barrier contact: the exact Jacobian's sparse LU (module
-    docstring), for the right-hand sides gs (k, N, 3)."""
+def _barrier_lu(problem, params, x, pairs, fdof, rtol):
+    """`solve_lu` on the barrier contact: the exact Jacobian that the barrier solver
+    assembles, and a solve of one right-hand side by its sparse LU, checked by the
+    residual's VJP (module docstring).  Returns (K, solve(b) -> (mu_f, 0, residual))."""
     from .barrier_newton import _Model
-    t0 = time.perf_counter()
-    fdof = np.repeat(np.asarray(problem.free), 3)
     N = problem.n_nodes
-    _, Kx = _Model(problem, params, None).tangent(np.asarray(x, float), pairs, exact=True)
-    lu = spla.splu(Kx.T.tocsc(), permc_spec="MMD_AT_PLUS_A")
-    mus, reps = [], []
-    for g in gs:
-        b = np.asarray(g, float).reshape(-1)[fdof]
-        nb = float(np.linalg.norm(b))
+    _, K = _Model(problem, params, None).tangent(np.asarray(x, float), pairs, exact=True)
+    lu = spla.splu(K.T.tocsc(), permc_spec="MMD_AT_PLUS_A")
+
+    def solve(b):
         mu = np.zeros(3 * N)
-        if nb == 0.0:
-            mus.append(mu.reshape(N, 3))
-            reps.append(AdjointReport(0, 0.0, time.perf_counter() - t0, int(Kx.nnz)))
-            continue
         mu[fdof] = lu.solve(b)
         # the check: K^T mu by the residual's VJP, independent of the assembled matrix
         gx, _ = residual_vjp(jnp.asarray(x), problem, params, pairs,
                              jnp.asarray(mu.reshape(N, 3)))
-        res = float(np.linalg.norm(-np.asarray(gx).reshape(-1)[fdof] - b) / nb)
+        res = float(np.linalg.norm(-np.asarray(gx).reshape(-1)[fdof] - b)
+                    / np.linalg.norm(b))
         if not np.isfinite(res) or res > 100 * rtol:
             raise ConvergenceError(f"adjoint solve on the barrier contact: the exact "
                                    f"Jacobian's solution has a relative residual of "
                                    f"{res:.3e} by the residual's VJP (tolerance "
                                    f"{100 * rtol:g})")
-        mus.append(mu.reshape(N, 3))
-        reps.append(AdjointReport(0, res, time.perf_counter() - t0, int(Kx.nnz)))
-    return np.stack(mus), tuple(reps)
+        return mu[fdof], 0, res
+    return K, solve
+
+
+def _gmres_lu(problem, params, x, nbrs, fdof, rtol, maxiter):
+    """`solve_lu` on the other contact laws: the assembled tangent (`tangent.assemble`),
+    and a solve of one right-hand side by GMRES on the residual's VJPs preconditioned by
+    its sparse LU.  Returns (K, solve(b) -> (mu_f, GMRES iterations, residual))."""
+    x = jnp.asarray(x)
+    N = problem.n_nodes
+    K = assemble(problem, params, x, nbrs)
+    lu = spla.splu(K.T.tocsc(), permc_spec="MMD_AT_PLUS_A")
+
+    def KT(vf):
+        v = np.zeros(3 * N)
+        v[fdof] = vf
+        gx, _ = residual_vjp(x, problem, params, nbrs, jnp.asarray(v.reshape(N, 3)))
+        return -np.asarray(gx).reshape(-1)[fdof]
+
+    A = spla.LinearOperator(K.shape, matvec=KT, dtype=float)
+    M = spla.LinearOperator(K.shape, matvec=lu.solve, dtype=float)
+
+    def solve(b):
+        count = [0]
+        mu_f, _ = spla.gmres(A, b, M=M, rtol=rtol, atol=0.0, restart=60,
+                             maxiter=maxiter // 60 + 1,
+                             callback=lambda r: count.__setitem__(0, count[0] + 1),
+                             callback_type="pr_norm")
+        res = float(np.linalg.norm(KT(mu_f) - b) / np.linalg.norm(b))
+        if not np.isfinite(res) or res > 100 * rtol:
+            raise ConvergenceError(f"adjoint solve did not converge: relative residual "
+                                   f"{res:.3e} after {count[0]} GMRES iterations "
+                                   f"(tolerance {rtol:g})")
+        return mu_f, count[0], res
+    return K, solve
 
 
 def solve_lu(problem, params, x, nbrs, g, *, rtol=1e-10, maxiter=300):
@@ -221,47 +247,22 @@ def solve_lu(problem, params, x, nbrs, g, *, rtol=1e-10, maxiter=300):
     factorisation; then mu (k, N, 3) and a tuple of k reports (seconds counted from the
     start of the call)."""
     from ..contact.ipc_pairs import BarrierPairs
+    t0 = time.perf_counter()
     g = np.asarray(g, float)
     many = g.ndim == 3
-    gs = g if many else g[None]
-    if isinstance(nbrs, BarrierPairs):
-        mus, reps = _solve_barrier_lu(problem, params, x, nbrs, gs, rtol)
-        return (mus, reps) if many else (mus[0], reps[0])
-    t0 = time.perf_counter()
-    x = jnp.asarray(x)
     fdof = np.repeat(np.asarray(problem.free), 3)
     N = problem.n_nodes
-    K = assemble(problem, params, x, nbrs)
-    lu = spla.splu(K.T.tocsc(), permc_spec="MMD_AT_PLUS_A")
-
-    def KT(vf):
-        v = np.zeros(3 * N)
-        v[fdof] = vf
-        gx, _ = residual_vjp(x, problem, params, nbrs, jnp.asarray(v.reshape(N, 3)))
-        return -np.asarray(gx).reshape(-1)[fdof]
-
-    A = spla.LinearOperator((K.shape[0], K.shape[0]), matvec=KT, dtype=float)
-    M = spla.LinearOperator(K.shape, matvec=lu.solve, dtype=float)
+    if isinstance(nbrs, BarrierPairs):
+        K, solve = _barrier_lu(problem, params, x, nbrs, fdof, rtol)
+    else:
+        K, solve = _gmres_lu(problem, params, x, nbrs, fdof, rtol, maxiter)
     mus, reps = [], []
-    for gi in gs:
+    for gi in (g if many else g[None]):
         b = gi.reshape(-1)[fdof]
-        nb = float(np.linalg.norm(b))
         mu = np.zeros(3 * N)
-        if nb == 0.0:
-            mus.append(mu.reshape(N, 3))
-            reps.append(AdjointReport(0, 0.0, time.perf_counter() - t0, int(K.nnz)))
-            continue
-        count = [0]
-        mu_f, _ = spla.gmres(A, b, M=M, rtol=rtol, atol=0.0, restart=60,
-                             maxiter=maxiter // 60 + 1,
-                             callback=lambda r: count.__setitem__(0, count[0] + 1),
-                             callback_type="pr_norm")
-        res = float(np.linalg.norm(KT(mu_f) - b) / nb)
-        if not np.isfinite(res) or res > 100 * rtol:
-            raise ConvergenceError(f"adjoint solve did not converge: relative residual "
-                                   f"{res:.3e} after {count[0]} GMRES iterations "
-                                   f"(tolerance {rtol:g})")
-        mu[fdof] = mu_f
+        its, res = 0, 0.0
+        if np.linalg.norm(b) > 0.0:
+            mu[fdof], its, res = solve(b)
         mus.append(mu.reshape(N, 3))
-        reps.append(AdjointReport(count[0], res, time.perf_counter() - t0, int(K.nnz)))
+        reps.append(AdjointReport(its, res, time.perf_counter() - t0, int(K.nnz)))
     return (np.stack(mus), tuple(reps)) if many else (mus[0], reps[0])
