@@ -10,6 +10,7 @@ from jaxvalve.geometry import meshgen
 from jaxvalve.mechanics.materials import Gent, MassSpring, NeoHookean, StVenantKirchhoff
 from jaxvalve.mechanics.problem import Params, make_problem, mmhg
 from jaxvalve.solvers import NewtonKrylov
+from jaxvalve.errors import ParameterError
 
 SOLVER = NewtonKrylov(rtol=1e-12)
 
@@ -159,3 +160,10 @@ def test_assembled_stiffness_is_the_exact_jacobian_without_contact(disk):
     mu, rep = solve_lu(prob, params, x, None, g)
     assert rep.residual < 1e-10 and rep.iterations <= 2
     assert np.all(mu[~np.asarray(prob.free)] == 0.0)
+    # a right-hand side with a NaN, or of the wrong shape, is refused before any assembly
+    bad = np.array(g)
+    bad[3, 1] = np.nan
+    with pytest.raises(ParameterError, match="g must be finite; it holds 1 NaN"):
+        solve_lu(prob, params, x, None, bad)
+    with pytest.raises(ParameterError, match=r"g must be \(\d+, 3\) or \(k, \d+, 3\)"):
+        solve_lu(prob, params, x, None, np.asarray(g)[:-1])

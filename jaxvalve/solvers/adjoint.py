@@ -43,7 +43,7 @@ import scipy.sparse.linalg as spla
 
 from ..mechanics import assembly
 from ..contact.neighbours import whole_lists
-from ..errors import ConvergenceError
+from ..errors import ConvergenceError, ParameterError
 from ..quick_jit import quick_jit
 from .newton import _apply_blocks, _precond
 from .tangent import assemble
@@ -245,13 +245,20 @@ def solve_lu(problem, params, x, nbrs, g, *, rtol=1e-10, maxiter=300):
 
     g (k, N, 3): k right-hand sides (e.g. one per metric) share one assembly and
     factorisation; then mu (k, N, 3) and a tuple of k reports (seconds counted from the
-    start of the call)."""
+    start of the call).  A g of another shape, or with a NaN or infinite entry, raises
+    `ParameterError` before any assembly."""
     from ..contact.ipc_pairs import BarrierPairs
     t0 = time.perf_counter()
     g = np.asarray(g, float)
+    N = problem.n_nodes
+    if g.ndim not in (2, 3) or g.shape[-2:] != (N, 3):
+        raise ParameterError(f"solve_lu's right-hand side g must be ({N}, 3) or (k, {N}, 3) "
+                             f"(one row per node); got shape {g.shape}")
+    if not np.all(np.isfinite(g)):
+        raise ParameterError(f"solve_lu's right-hand side g must be finite; it holds "
+                             f"{int(np.sum(~np.isfinite(g)))} NaN or infinite entries")
     many = g.ndim == 3
     fdof = np.repeat(np.asarray(problem.free), 3)
-    N = problem.n_nodes
     if isinstance(nbrs, BarrierPairs):
         K, solve = _barrier_lu(problem, params, x, nbrs, fdof, rtol)
     else:

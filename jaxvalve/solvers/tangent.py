@@ -46,34 +46,29 @@ class BlockAssembler:
         self.red = np.where(dof_free, np.cumsum(dof_free) - 1, -1)   # free dof id or -1
         self.nf = int(dof_free.sum())
 
-    def _entries(self, nodes):
-        """Row and column free dof ids (B, 3n, 3n) of the blocks over ``nodes`` (B, n),
-        and the mask of entries between free dofs."""
+    def _dofs(self, nodes):
         nodes = np.asarray(nodes)
-        dofs = self.red[(3 * nodes[:, :, None] + np.arange(3)).reshape(len(nodes), -1)]
-        rows = np.broadcast_to(dofs[:, :, None], dofs.shape + (dofs.shape[1],))
-        cols = np.broadcast_to(dofs[:, None, :], rows.shape)
+        return self.red[(3 * nodes[:, :, None] + np.arange(3)).reshape(len(nodes), -1)]
+
+    def _entries(self, nodes, col_nodes=None):
+        """Row and column free dof ids (B, 3n, 3m) of the blocks with rows over ``nodes``
+        (B, n) and columns over ``col_nodes`` (B, m; default ``nodes``), and the mask of
+        entries between free dofs."""
+        r = self._dofs(nodes)
+        c = r if col_nodes is None else self._dofs(col_nodes)
+        rows = np.broadcast_to(r[:, :, None], r.shape + (c.shape[1],))
+        cols = np.broadcast_to(c[:, None, :], rows.shape)
         return rows, cols, (rows >= 0) & (cols >= 0)
 
-    def coo(self, blocks, nodes):
-        """CSR (nf, nf) of the blocks (B, 3n, 3n) over the node tuples (B, n); repeated
+    def coo(self, blocks, nodes, col_nodes=None):
+        """CSR (nf, nf) of the blocks (B, 3n, 3n) over the node tuples (B, n), or, with
+        ``col_nodes`` (B, m), of the blocks (B, 3n, 3m) coupling the rows of ``nodes`` to
+        the columns of ``col_nodes`` (e.g. the soft minimum's group terms); repeated
         entries are summed."""
         blocks = np.asarray(blocks)
-        rows, cols, keep = self._entries(nodes)
+        rows, cols, keep = self._entries(nodes, col_nodes)
         return sp.csr_matrix((blocks[keep], (rows[keep], cols[keep])),
                              shape=(self.nf, self.nf))
-
-    def coo_node_pairs(self, blocks, ni, nj):
-        """CSR (nf, nf) of the 3x3 blocks (T, 3, 3) at rows of node ni (T,) and columns of
-        node nj (T,) (coupling blocks that are not over one node tuple, e.g. the soft
-        minimum's group terms); repeated entries are summed."""
-        blocks = np.asarray(blocks)
-        rows = self.red[3 * np.asarray(ni)[:, None] + np.arange(3)]
-        cols = self.red[3 * np.asarray(nj)[:, None] + np.arange(3)]
-        r = np.broadcast_to(rows[:, :, None], blocks.shape)
-        c = np.broadcast_to(cols[:, None, :], blocks.shape)
-        keep = (r >= 0) & (c >= 0)
-        return sp.csr_matrix((blocks[keep], (r[keep], c[keep])), shape=(self.nf, self.nf))
 
     def pattern(self, node_sets):
         """The fixed sparsity pattern (`BlockPattern`) of blocks over the node tuples of
@@ -234,7 +229,7 @@ def _group_outer(asm: "BlockAssembler", n_nodes: int, g, nodes, A, B, alpha, bet
     ga, gb = alpha[grp[i]][:, None, None], beta[grp[i]][:, None, None]
     outer = lambda P, Q: P[i][:, :, None] * Q[j][:, None, :]
     blocks = ga * outer(Av, Av) + gb * (outer(Av, Bv) + outer(Bv, Av))
-    return asm.coo_node_pairs(blocks, nd[i], nd[j])
+    return asm.coo(blocks, nd[i][:, None], nd[j][:, None])
 
 
 @quick_jit
