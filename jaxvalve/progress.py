@@ -3,8 +3,9 @@
 Two halves, apart so that the compiled programs never depend on whether anyone listens:
 
 * **Beacons.**  A single solve called with concrete values runs its compiled loop from the
-  host in stretches of `BEACON_EVERY` steps (`solvers.equilibrium._solve_stretches`) and
-  calls `beacon` after each, with the step count and the relative residual: none of its
+  host in stretches of whole multiples of `BEACON_EVERY` steps, each lasting about
+  `STRETCH_S` (`next_stretch`, `solvers.equilibrium._solve_stretches`), and calls `beacon`
+  after each, with the step count and the relative residual: none of its
   programs holds a host callback, which JAX's persistent compilation cache would refuse to
   store.  Inside a trace the loop (`solvers.base.iterate`) calls it through
   `jax.debug.callback` every `BEACON_EVERY` steps instead; the barrier Newton solver (a
@@ -33,14 +34,33 @@ import numpy as np
 
 from .errors import ParameterError
 
-__all__ = ["BEACON_EVERY", "EVERY_S", "beacon", "member_done", "latest", "Heartbeat"]
+__all__ = ["BEACON_EVERY", "STRETCH_S", "MAX_STRETCH", "next_stretch", "EVERY_S", "beacon",
+           "member_done", "latest", "Heartbeat"]
 
 #: Seconds of silence after which the heartbeat prints a line (`Heartbeat`'s default).
 EVERY_S = 2.0
 
-#: Loop steps between two beacons of a compiled solve (a FIRE step costs 0.3-3 ms on the
-#: valve, so 100 steps are 0.03-0.3 s: several beacons per heartbeat line).
+#: Loop steps between two beacons of a compiled solve inside a trace, and the unit of a
+#: host-driven solve's stretches (a FIRE step costs 0.3-3 ms on the valve, so 100 steps
+#: are 0.03-0.3 s).
 BEACON_EVERY = 100
+
+#: Seconds a host-driven solve's stretch should last (`next_stretch`): several beacons per
+#: heartbeat line, and few enough host round trips that they cost nothing measurable.
+STRETCH_S = 0.25
+
+#: The longest stretch of a host-driven solve, in units of `BEACON_EVERY` steps.
+MAX_STRETCH = 64
+
+
+def next_stretch(k: int, seconds: float) -> int:
+    """The length (in units of `BEACON_EVERY` steps) of a host-driven solve's next stretch,
+    after one of ``k`` units that took ``seconds``: scaled towards `STRETCH_S`, at most
+    doubled (the first stretch's time includes its compilation), within [1,
+    `MAX_STRETCH`].  Each stretch costs a host round trip (the carry's dispatch and a
+    sync): at 100 steps a stretch, about 1.5 % of a FIRE closure at h = 1.5 mm."""
+    want = int(k * STRETCH_S / seconds) if seconds > 0 else MAX_STRETCH
+    return max(1, min(2 * k, MAX_STRETCH, want))
 
 _lock = threading.Lock()
 _latest = {"serial": 0, "steps": None, "residual": None, "solver": None, "t": 0.0,

@@ -59,26 +59,60 @@ def test_heartbeat_speaks_when_the_run_is_silent_and_only_then():
     assert len(lines) == n                  # the thread has stopped
 
 
-def test_a_compiled_solve_reports_its_steps():
-    """FIRE's `lax.while_loop` sends a beacon every BEACON_EVERY steps with the relative
-    residual at that step: the last one matches a solve stopped there."""
+def _disk_problem():
     p, t, rim = meshgen.disk(5.0, 6)
     problem, ref = make_problem(p, t, fixed=rim)
     params = Params(ref=ref, material=StVenantKirchhoff(E=1.0, nu=0.45), thickness=0.3,
                     pressure=mmhg(80))
-    x0 = jnp.asarray(meshgen.lift(p))
+    return problem, params, jnp.asarray(meshgen.lift(p))
+
+
+def test_a_compiled_solve_reports_its_steps(monkeypatch):
+    """A solve from the host sends a beacon after each whole stretch, at a multiple of
+    BEACON_EVERY steps, with the relative residual there: the last one matches a solve
+    stopped there.  With the stretches held at one unit, one beacon every BEACON_EVERY
+    steps."""
+    problem, params, x0 = _disk_problem()
     every = progress.BEACON_EVERY
-    before = progress.latest()
-    sol = equilibrium.solve(problem, params, x0, FIRE(rtol=1e-12, max_steps=2 * every + 50),
-                            throw=False)
-    jax.effects_barrier()
-    after = progress.latest()
-    assert int(sol.stats.steps) == 2 * every + 50
-    assert after["serial"] - before["serial"] == 2
-    assert after["steps"] == 2 * every and after["solver"] == "FIRE"
-    stop = equilibrium.solve(problem, params, x0, FIRE(rtol=1e-12, max_steps=2 * every),
-                             throw=False)
-    np.testing.assert_allclose(after["residual"], float(stop.stats.residual), rtol=1e-10)
+    for most in (1, progress.MAX_STRETCH):
+        monkeypatch.setattr(progress, "MAX_STRETCH", most)
+        before = progress.latest()
+        sol = equilibrium.solve(problem, params, x0,
+                                FIRE(rtol=1e-12, max_steps=2 * every + 50), throw=False)
+        jax.effects_barrier()
+        after = progress.latest()
+        assert int(sol.stats.steps) == 2 * every + 50
+        assert after["solver"] == "FIRE" and after["steps"] % every == 0
+        if most == 1:
+            assert after["serial"] - before["serial"] == 2 and after["steps"] == 2 * every
+        else:
+            assert 1 <= after["serial"] - before["serial"] <= 2
+        stop = equilibrium.solve(problem, params, x0, FIRE(rtol=1e-12, max_steps=after["steps"]),
+                                 throw=False)
+        np.testing.assert_allclose(after["residual"], float(stop.stats.residual), rtol=1e-10)
+
+
+def test_stretches_grow_to_their_time_and_do_not_change_the_solve(monkeypatch):
+    """`next_stretch` scales a stretch towards STRETCH_S, at most doubling it, within
+    [1, MAX_STRETCH]; and where the stretches end does not change a solve: one unit a
+    stretch and stretches grown to the cap give the same state, bit for bit."""
+    s = progress.STRETCH_S
+    assert progress.next_stretch(1, 10.0) == 1                 # slow (compiling): stay
+    assert progress.next_stretch(4, 2 * s) == 2                # twice too long: halve
+    assert progress.next_stretch(4, s / 100) == 8              # far too short: double
+    assert progress.next_stretch(4, s / 1.5) == 6              # a little short: scale
+    assert progress.next_stretch(progress.MAX_STRETCH, 1e-6) == progress.MAX_STRETCH
+    assert progress.next_stretch(3, 0.0) == 6
+    problem, params, x0 = _disk_problem()
+    solver = FIRE(rtol=1e-9, max_steps=5000)
+    out = []
+    for stretch_s in (1e-9, 1e9):       # one unit a stretch; doubling to the cap
+        monkeypatch.setattr(progress, "STRETCH_S", stretch_s)
+        out.append(equilibrium.solve(problem, params, x0, solver, throw=False))
+    a, b = out
+    assert a.converged and b.converged
+    assert int(a.stats.steps) == int(b.stats.steps) > 3 * progress.BEACON_EVERY
+    np.testing.assert_array_equal(np.asarray(a.x), np.asarray(b.x))
 
 
 def test_heartbeat_interval_must_be_positive():

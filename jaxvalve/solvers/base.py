@@ -200,13 +200,15 @@ def check_state(system, y, args, F, admissible=None):
     return code
 
 
-def _set_f0(args, F0):
-    """Set the residual scale at P = 0 (``args["f0"]``, sentinel < 0) from a first force."""
+def set_f0(args, F0):
+    """Set the residual scale at P = 0 (``args["f0"]``, sentinel < 0) from a first force
+    (a no-op once set: the loop calls it after each step of a lazy-force solver, and FIRE
+    before it measures its residual in the step)."""
     f0 = jnp.linalg.norm(F0)
     return dict(args, f0=jnp.where(args["f0"] < 0, jnp.where(f0 > 0, f0, 1.0), args["f0"]))
 
 
-#: the entries of ``args`` a loop step may change (`EquilibriumSystem.update`, `_set_f0`)
+#: the entries of ``args`` a loop step may change (`EquilibriumSystem.update`, `set_f0`)
 _STEP_ARGS = ("nbrs", "f0")
 
 
@@ -288,7 +290,7 @@ def loop_start(solver, system, y0, args):
     lazy = getattr(solver, "lazy_force", False)   # F(y0) comes from the first step
     if "f0" in args and not lazy:  # residual scale at P = 0: the initial force
         F0 = state["F"] if "F" in state else system.force(y0, args)
-        args = _set_f0(args, F0)
+        args = set_f0(args, F0)
     done, result = solver.terminate(system, y0, args, state)
     return (y0, args, state, jnp.asarray(0), done, result, y0)
 
@@ -346,7 +348,7 @@ def _stepper(solver, system, fixed, send):
     def advance(y, args, state, done):
         y, state = solver.step(system, y, dict(args, active=~done), state)
         if "f0" in args and lazy:
-            args = _set_f0(args, state["F"])
+            args = set_f0(args, state["F"])
         done, result = solver.terminate(system, y, args, state)
         return y, args, state, done, result
 

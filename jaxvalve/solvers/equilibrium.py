@@ -12,6 +12,7 @@ import contextlib
 import dataclasses
 import functools
 import logging
+import time
 
 import jax
 import jax.numpy as jnp
@@ -268,11 +269,14 @@ def _solve_jit(solver, problem, params, x0, nbrs, skin, whole_lists=False):
 
 def _solve_stretches(blank, problem, params, x0, nbrs, skin, whole_lists, settings):
     """`_run` driven from the host: each solver's loop (the warm starts', then the
-    solver's) runs in compiled stretches of `progress.BEACON_EVERY` steps, and the host
-    sends the beacon after each.  The same loop body as `_solve_compiled`'s, but no host
-    callback in any program, so that JAX's persistent compilation cache keeps them (it
-    stores no program that holds one: a warm `jaxvalve simulate` compiled its solve anew,
-    16.8 s of compilation against 5.8 s without the callback)."""
+    solver's) runs in compiled stretches of whole multiples of `progress.BEACON_EVERY`
+    steps (`progress.next_stretch`: one at first, then grown until a stretch lasts about
+    `progress.STRETCH_S`), and the host sends the beacon after each.  Where a stretch ends
+    does not change the solve: the loop's carry passes through unchanged.  The same loop
+    body as `_solve_compiled`'s, but no host callback in any program, so that JAX's
+    persistent compilation cache keeps them (it stores no program that holds one: a warm
+    `jaxvalve simulate` compiled its solve anew, 16.8 s of compilation against 5.8 s
+    without the callback)."""
     n_phases = len(getattr(blank, "warm_start", None) or ()) + 1
     args = _stretch_args(blank, problem, params, x0, nbrs, skin, whole_lists, settings)
     y, totals = x0, (jnp.asarray(0),) * 3
@@ -281,13 +285,15 @@ def _solve_stretches(blank, problem, params, x0, nbrs, skin, whole_lists, settin
         name = type(_phase(blank, settings, i)).__name__
         c, running = _stretch_start(blank, i, problem, params, skin, whole_lists, settings,
                                     y, args)
-        n = int(c[3])
+        n, k = int(c[3]), 1
         while bool(running):
+            t = time.perf_counter()
             c, running, res = _stretch(blank, i, problem, params, skin, whole_lists,
-                                       settings, c, jnp.asarray((n // every + 1) * every))
+                                       settings, c, jnp.asarray((n // every + k) * every))
             n = int(c[3])
             if n % every == 0:
                 progress.beacon(n, res, name)
+            k = progress.next_stretch(k, time.perf_counter() - t)
         out = _stretch_end(blank, i, problem, params, skin, whole_lists, settings, c, totals)
         if i + 1 < n_phases:
             y, args, totals = out

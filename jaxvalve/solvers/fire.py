@@ -7,7 +7,7 @@ import jax.numpy as jnp
 
 from ..vmap_control import cond_each
 from ..errors import ParameterError
-from .base import RESULTS, check_settings, check_state, relative_residual
+from .base import RESULTS, check_settings, check_state, relative_residual, set_f0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -77,7 +77,8 @@ class FIRE:
                     alpha=jnp.asarray(self.alpha_start, y.dtype),
                     npos=jnp.asarray(0), n=jnp.asarray(0), evals=jnp.asarray(0),
                     refused=jnp.asarray(False), admissible=jnp.asarray(True),
-                    best=jnp.asarray(jnp.inf, y.dtype), mark=jnp.asarray(0))
+                    r=jnp.asarray(jnp.inf, y.dtype), best=jnp.asarray(jnp.inf, y.dtype),
+                    mark=jnp.asarray(0))
 
     def step(self, system, y, args, s):
         F, v = s["F"], s["v"]
@@ -123,20 +124,23 @@ class FIRE:
         alpha = jnp.where(refuse, self.alpha_start, alpha)
         npos = jnp.where(refuse, 0, npos)
         n = s["n"] + 1
-        # patience: the step at which the best residual last halved (from step 1: at the
-        # null step 0 the residual's scale may not be set yet, `iterate`); with patience
-        # 0 nothing is traced
+        # the relative residual at y, measured once a step, here, for the patience and for
+        # `terminate` (each evaluation of the residual's scale is a pressure load); at
+        # rest (P = 0) its scale is F(y0), which the loop sets after the null step 0
+        # (`iterate`): set_f0 gives the same scale here
+        r = relative_residual(system, y, set_f0(args, F) if "f0" in args else args, F)
+        # patience: the step at which the best residual last halved (from step 1)
         best, mark = s["best"], s["mark"]
         if self.patience > 0:
-            r = relative_residual(system, y, args, F)
             halved = ~first & (r < 0.5 * best)
             best, mark = jnp.where(halved, r, best), jnp.where(halved, n, mark)
         return y, dict(F=F, v=v, m=m, dt=dt, alpha=alpha, npos=npos, n=n, evals=s["evals"] + 1,
-                       refused=refuse, admissible=admissible | refuse, best=best, mark=mark)
+                       refused=refuse, admissible=admissible | refuse, r=r, best=best,
+                       mark=mark)
 
     def terminate(self, system, y, args, s):
         started = s["n"] > 0                      # F is the force at y after step 0
-        ok = started & (relative_residual(system, y, args, s["F"]) < self.rtol)
+        ok = started & (s["r"] < self.rtol)     # the step measured it at y
         # the step checked y's stretch (a refused step keeps y0, admissible since step 0)
         bad = jnp.where(started, check_state(system, y, args, s["F"], s["admissible"]), -1)
         # refused steps shrank dt to nothing: every step from y leaves the admissible set
