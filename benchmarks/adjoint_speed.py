@@ -15,12 +15,12 @@ the median first call and the median of all later calls ("speed-up").
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import statistics
-import subprocess
 import sys
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from checkouts import describe, run_json  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -47,21 +47,6 @@ print(json.dumps(dict(first=ts[0], later=ts[1:], iterations=a.iterations,
 """
 
 
-def run(root: Path, calls: int) -> dict:
-    env = dict(os.environ, PYTHONPATH=str(root), JAXVALVE_CACHE_DIR="off")
-    p = subprocess.run([sys.executable, "-c", CHILD, str(calls)], cwd=root, env=env,
-                       capture_output=True, text=True)
-    if p.returncode != 0:
-        raise SystemExit(f"gradient run in {root} failed:\n{p.stdout}\n{p.stderr}")
-    return json.loads(p.stdout.strip().splitlines()[-1])
-
-
-def describe(root: Path) -> str:
-    p = subprocess.run(["git", "log", "-1", "--format=%h %s"], cwd=root, capture_output=True,
-                       text=True)
-    return p.stdout.strip()[:100] if p.returncode == 0 else str(root)
-
-
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--baseline", type=Path, required=True, metavar="DIR",
@@ -81,7 +66,7 @@ def main(argv=None):
     out = {name: [] for name in codes}
     for i in range(args.processes):
         for name, root in codes.items():
-            r = run(root, args.calls)
+            r = run_json(root, CHILD, (args.calls,), "the gradient run")
             out[name].append(r)
             print(f"{name:9s} process {i + 1}: first {r['first']:.2f} s, later "
                   f"{' '.join(f'{t:.3f}' for t in r['later'])} s; GMRES {r['iterations']}, "

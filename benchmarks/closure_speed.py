@@ -39,10 +39,7 @@ speed-ups against the baseline (its median over this path's).
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import statistics
-import subprocess
 import sys
 from pathlib import Path
 
@@ -55,6 +52,9 @@ from jaxvalve.contact.ipc_pairs import build_pairs  # noqa: E402
 from jaxvalve.scene import MODELS  # noqa: E402
 from jaxvalve.simulation import build_scene_valve  # noqa: E402
 from jaxvalve.xla_setup import platform_summary  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from checkouts import describe, run_json  # noqa: E402
 
 PATHS = (("fire + smooth", dict(contact="smooth", solver="fire", fallback=False)),
          ("default", dict()),
@@ -98,21 +98,6 @@ print(json.dumps(out))
 """
 
 
-def _child(root: Path, model, h, rtol, repeats, paths) -> dict:
-    env = dict(os.environ, PYTHONPATH=str(root), JAXVALVE_CACHE_DIR="off")
-    p = subprocess.run([sys.executable, "-c", CHILD, model, str(h), str(rtol), str(repeats),
-                        *paths], cwd=root, env=env, capture_output=True, text=True)
-    if p.returncode != 0:
-        raise SystemExit(f"closures in {root} failed:\n{p.stdout}\n{p.stderr}")
-    return json.loads(p.stdout.strip().splitlines()[-1])
-
-
-def _describe(root: Path) -> str:
-    p = subprocess.run(["git", "log", "-1", "--format=%h %s"], cwd=root, capture_output=True,
-                       text=True)
-    return p.stdout.strip()[:100] if p.returncode == 0 else str(root)
-
-
 def against_baseline(args, say):
     """``--baseline``: this code's default and FIRE paths against DIR's default closure,
     fresh processes alternating (module docstring)."""
@@ -121,7 +106,7 @@ def against_baseline(args, say):
         raise SystemExit(f"--baseline must be a jaxvalve checkout; got {base}")
     codes = (("baseline", base, ("default",)), ("this code", ROOT, ("default", "fire")))
     for name, root, _ in codes:
-        say(f"# {name}: {_describe(root)}")
+        say(f"# {name}: {describe(root)}")
     say(f"# benchmark closure, h = {args.h} mm, rtol = {args.rtol:g}; {args.processes} fresh "
         f"processes per code and model, alternating, each compiling once and then timing "
         f"{args.repeats} closures (median of all); compilation cache off; "
@@ -134,7 +119,8 @@ def against_baseline(args, say):
         got = {}
         for _ in range(args.processes):
             for name, root, paths in codes:
-                r = _child(root, model, args.h, args.rtol, args.repeats, paths)
+                r = run_json(root, CHILD, (model, args.h, args.rtol, args.repeats, *paths),
+                             "the closures")
                 for path, v in r.items():
                     got.setdefault((name, path), []).append(v)
         med = {}

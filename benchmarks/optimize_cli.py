@@ -39,6 +39,9 @@ from pathlib import Path
 
 from jaxvalve.xla_setup import platform_summary
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from checkouts import describe, env_for  # noqa: E402
+
 ROOT = Path(__file__).resolve().parents[1]
 TARGET_S = 60.0
 CLI = "import sys; from jaxvalve.cli import main; sys.exit(main(sys.argv[1:]))"
@@ -57,9 +60,8 @@ def run_cli(argv, env, out: Path, root: Path = ROOT) -> float:
 
 
 def run_once(cache: Path, out: Path, extra, root: Path = ROOT) -> dict:
-    env = dict(os.environ, JAXVALVE_CACHE_DIR=str(cache))
-    if root != ROOT:
-        env["PYTHONPATH"] = str(root)
+    env = (dict(os.environ, JAXVALVE_CACHE_DIR=str(cache)) if root == ROOT
+           else env_for(root, JAXVALVE_CACHE_DIR=str(cache)))
     wall = run_cli(["optimize", *extra], env, out, root)
     d = json.loads((out / "trajectory.json").read_text())
     st, last = d["status"], d["records"][-1]
@@ -106,20 +108,13 @@ def main(argv=None):
     print(f"platform: {platform_summary()}")
     for name, root in codes:
         if base is not None:
-            print(f"## {name}: {_describe(root)}")
+            print(f"## {name}: {describe(root)}")
         _table(rows[name])
     if base is not None:
         _compare(rows["this code"], rows["baseline"])
     if ref is not None:
         print(f"machine-speed reference, jaxvalve simulate with the cache off: solve "
               f"{ref['solve']:.2f} s, compile {ref['compile']:.1f} s, {ref['wall']:.1f} s wall")
-
-
-def _describe(root: Path) -> str:
-    """``root``'s commit, from git (or the path where git cannot say)."""
-    p = subprocess.run(["git", "-C", str(root), "log", "-1", "--format=%h %s"],
-                       capture_output=True, text=True)
-    return p.stdout.strip()[:100] if p.returncode == 0 else str(root)
 
 
 def _compare(new: list, old: list) -> None:
