@@ -16,7 +16,10 @@ SUBCOMMANDS = {"membrane": membrane, "optimize": optimize, "phantom": phantom,
 def enable_compilation_cache():
     """Keep XLA executables between runs in ``$JAXVALVE_CACHE_DIR`` (default
     ``~/.cache/jaxvalve/xla``; set it to ``off`` to disable): a second run of the same
-    scene shape then skips most of the compilation."""
+    scene shape then skips most of the compilation.  Every program is kept, however quickly
+    it compiled: with JAX's threshold at 0.5 s a warm `jaxvalve optimize` compiled 2.6 s of
+    small programs again and took 19.6-20.1 s against 18.3-19.2 s with every program
+    kept (three warm runs each, alternating; the cache 3.7 MB against 2.5 MB)."""
     import os
     from pathlib import Path
 
@@ -29,7 +32,7 @@ def enable_compilation_cache():
     except OSError:
         return None
     jax.config.update("jax_compilation_cache_dir", path)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     return path
 
 
