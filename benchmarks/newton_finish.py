@@ -112,6 +112,8 @@ def main(argv=None):
     ap.add_argument("--models", nargs="*", default=list(MODELS))
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
+    if args.max_newton < 1:
+        ap.error(f"--max-newton must be a positive count; got {args.max_newton}")
     if not all(args.rtol < s < 1 for s in args.switch):
         ap.error(f"--switch values must lie between --rtol ({args.rtol:g}) and 1")
     say = Tee()
