@@ -58,22 +58,26 @@ def _relative(problem):
 
 
 def newton_finish(problem, params, x, nbrs, rtol, max_steps, relative):
-    """Plain Newton from x (N, 3) mm on the exact assembled tangent, FIRE's pair list kept.
+    """Plain Newton from x (N, 3) mm on the exact assembled tangent, FIRE's pair list kept,
+    until the relative residual is below rtol ("converged"), rises tenfold above its start
+    or is not finite ("diverged"), or ``max_steps`` steps ("step cap").
     Returns (state, steps, relative residual, outcome)."""
     free = np.asarray(problem.free)
     x = np.array(x, np.float64)
     R, r = relative(jnp.asarray(x), params, nbrs)
-    r0 = float(r)
-    for k in range(max_steps + 1):
+    r0, steps = float(r), 0
+    while True:
         r = float(r)
         if r <= rtol:
-            return x, k, r, "converged"
-        if k == max_steps or not np.isfinite(r) or r > 10 * r0:
-            return x, k, r, "diverged" if r > 10 * r0 or not np.isfinite(r) else "step cap"
+            return x, steps, r, "converged"
+        if not np.isfinite(r) or r > 10 * r0:
+            return x, steps, r, "diverged"
+        if steps == max_steps:
+            return x, steps, r, "step cap"
         K = tangent.assemble(problem, params, x, nbrs)
         x[free] += spla.splu(K).solve(np.asarray(R)[free].ravel()).reshape(-1, 3)
         R, r = relative(jnp.asarray(x), params, nbrs)
-    raise AssertionError("unreachable")
+        steps += 1
 
 
 def run_path(valve, scene, switch, rtol, max_newton, relative):
