@@ -126,6 +126,10 @@ def soft_energy_reference(law, x, triangles, nbrs: NeighbourList, node_area):
     return 0.5 * jnp.sum(jnp.where(live, node_area[node], 0.0) * law.potential(s))
 
 
+#: Static prefixes of the pruned pair list that the soft-min energy chooses from, each
+#: half the last (`SmoothContact._energy_pairs`).
+SOFT_PREFIXES = 5
+
 CHUNK_ROWS = 256  # rows (x ROW_WIDTH slots) per loop iteration of the nearest search
 
 
@@ -303,10 +307,17 @@ class SmoothContact:
         triangle that weighs more than exp(-PRUNE_REACH) of the nearest; tested equal to
         the sum over all candidates), whose nearest one gives the side and the liveness.
         Only the groups with a (signed) gap below g0 carry energy.  Evaluated on the
-        shortest static prefix of the list that holds its pairs (`lax.switch`)."""
+        shortest static prefix of the list that holds its pairs (`lax.switch`).
+
+        The prefixes halve down to 1/16 of the capacity (`SOFT_PREFIXES`): a force costs
+        about 0.09 us per slot of its prefix, and the pairs in use range from a few while
+        the leaflets swing shut to about 2000 of 6144 slots at 80 mmHg (the benchmark
+        valve at h = 1.5 mm), so with three prefixes (down to 1/4) the swing-shut paid
+        for 1536 slots.  Five prefixes closed the valve 5-20 % faster for 1.3-2.5 s more
+        compilation (docs/benchmark-notes.md, "The pair energy's prefixes")."""
         base = pairs.base
         R = base.rows
-        sizes = bucket_sizes(pairs.soft_capacity, smallest=256, most=3, factor=2)
+        sizes = bucket_sizes(pairs.soft_capacity, smallest=256, most=SOFT_PREFIXES, factor=2)
         node_of = jnp.clip(base.group_node, 0, x.shape[0] - 1)
 
         def branch(q, x):

@@ -133,8 +133,15 @@ def force_parts(x, problem, params, ref, nbrs=None, delta=None):
 
 def residual(x, problem, params, ref, nbrs=None, delta=None):
     """Total force on free nodes (N, 3); zero rows at fixed nodes.  Equilibrium: residual = 0."""
+    return residual_and_scale(x, problem, params, ref, nbrs, delta)[0]
+
+
+def residual_and_scale(x, problem, params, ref, nbrs=None, delta=None):
+    """(`residual` (N, 3) N, `pressure_scale` () N) from one evaluation of the pressure
+    load: a solver that measures its relative residual every step needs both."""
     f_cons, f_p, f_pc = force_parts(x, problem, params, ref, nbrs, delta)
-    return (f_cons + f_p + f_pc) * problem.free[:, None]
+    free = problem.free[:, None]
+    return (f_cons + f_p + f_pc) * free, jnp.linalg.norm(f_p * free)
 
 
 def pressure_scale(x, problem, params):

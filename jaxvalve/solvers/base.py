@@ -75,6 +75,9 @@ class EquilibriumSystem(NamedTuple):
     overflow(args) -> bool: a pair list overflowed.
     laplacian(v, args) -> (N, k): cotangent Laplacian of the reference mesh applied to v.
     free: (N,) bool.
+    force_scale(y, args) -> ((N, 3), ()): force and scale from one evaluation (the scale
+    at P = 0 set from that force where ``args["f0"]`` is not yet, as `set_f0` does); None:
+    `force` and `scale` apart.
     """
 
     force: Callable
@@ -86,6 +89,7 @@ class EquilibriumSystem(NamedTuple):
     overflow: Callable
     laplacian: Callable
     free: Any
+    force_scale: Callable | None = None
 
 
 @jax.tree_util.register_dataclass
@@ -198,6 +202,15 @@ def check_state(system, y, args, F, admissible=None):
                      RESULTS.escaped, code)
     code = jnp.where((code < 0) & system.overflow(args), RESULTS.neighbour_overflow, code)
     return code
+
+
+def force_and_scale(system, y, args):
+    """(F, scale) at y: `EquilibriumSystem.force_scale`, or `force` and `scale` apart
+    (with ``args["f0"]`` set from F, `set_f0`)."""
+    if system.force_scale is not None:
+        return system.force_scale(y, args)
+    F = system.force(y, args)
+    return F, system.scale(y, set_f0(args, F) if "f0" in args else args)
 
 
 def set_f0(args, F0):

@@ -33,7 +33,7 @@ from .base import (RESULTS, EquilibriumSystem, Solution, Stats, iterate, loop_ch
 from .. import progress
 from .fixed_point import FixedPoint
 from .newton import NewtonKrylov
-from .base import escape_distance, relative_residual
+from .base import escape_distance, relative_residual, set_f0
 from .. import contact as _contact
 
 _log = logging.getLogger("jaxvalve")
@@ -120,6 +120,11 @@ def make_system(problem: Problem, params: Params) -> EquilibriumSystem:
         p = a["params"]
         return jnp.where(p.pressure != 0, assembly.pressure_scale(y, problem, p), a["f0"])
 
+    def force_scale(y, a):
+        p = a["params"]
+        F, s = assembly.residual_and_scale(y, problem, p, a["ref"], a["nbrs"], a["delta"])
+        return F, jnp.where(p.pressure != 0, s, set_f0(a, F)["f0"])
+
     def admissible(y, a):
         return assembly.stretch_admissible(y, problem, a["params"], a["ref"])
 
@@ -144,7 +149,7 @@ def make_system(problem: Problem, params: Params) -> EquilibriumSystem:
         return assembly.laplacian_apply(v, problem.triangles, a["ref"].cot)
 
     return EquilibriumSystem(force, scale, admissible, bound, block_diag, update, overflow,
-                             laplacian, problem.free)
+                             laplacian, problem.free, force_scale)
 
 
 def _make_args(problem, params, x0, nbrs, solver, skin):

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 
 from ..vmap_control import cond_each
 from ..errors import ParameterError
-from .base import RESULTS, check_settings, check_state, relative_residual, set_f0
+from .base import RESULTS, check_settings, check_state, force_and_scale
 
 
 @dataclasses.dataclass(frozen=True)
@@ -77,8 +77,8 @@ class FIRE:
                     alpha=jnp.asarray(self.alpha_start, y.dtype),
                     npos=jnp.asarray(0), n=jnp.asarray(0), evals=jnp.asarray(0),
                     refused=jnp.asarray(False), admissible=jnp.asarray(True),
-                    r=jnp.asarray(jnp.inf, y.dtype), best=jnp.asarray(jnp.inf, y.dtype),
-                    mark=jnp.asarray(0))
+                    r=jnp.asarray(jnp.inf, y.dtype), scale=jnp.asarray(1.0, y.dtype),
+                    best=jnp.asarray(jnp.inf, y.dtype), mark=jnp.asarray(0))
 
     def step(self, system, y, args, s):
         F, v = s["F"], s["v"]
@@ -112,31 +112,32 @@ class FIRE:
         big = jnp.max(jnp.linalg.norm(dy, axis=-1))
         dy = dy * jnp.minimum(1.0, args["max_move"] / jnp.where(big > 0, big, 1.0))
         y = y + dy
-        F = system.force(y, args)
+        F, scale = force_and_scale(system, y, args)
         # a step out of the admissible set is refused: back to y0 (whose force is s["F"]),
         # at rest, with half the time step (the null step 0 is never refused: F(y0) is new)
         admissible = system.admissible(y, args)
         refuse = ~first & ~admissible
         y = jnp.where(refuse, y0, y)
         F = jnp.where(refuse, s["F"], F)
+        scale = jnp.where(refuse, s["scale"], scale)
         v = jnp.where(refuse, 0.0, v)
         dt = jnp.where(refuse, dt * self.f_dec, dt)
         alpha = jnp.where(refuse, self.alpha_start, alpha)
         npos = jnp.where(refuse, 0, npos)
         n = s["n"] + 1
         # the relative residual at y, measured once a step, here, for the patience and for
-        # `terminate` (each evaluation of the residual's scale is a pressure load); at
-        # rest (P = 0) its scale is F(y0), which the loop sets after the null step 0
-        # (`iterate`): set_f0 gives the same scale here
-        r = relative_residual(system, y, set_f0(args, F) if "f0" in args else args, F)
+        # `terminate`, with the scale (||F_pressure||) from the force's own pressure load;
+        # at rest (P = 0) the scale is F(y0), which the loop sets after the null step 0
+        # (`iterate`) and `force_and_scale` gives the same here
+        r = jnp.linalg.norm(F) / jnp.where(scale > 0, scale, 1.0)
         # patience: the step at which the best residual last halved (from step 1)
         best, mark = s["best"], s["mark"]
         if self.patience > 0:
             halved = ~first & (r < 0.5 * best)
             best, mark = jnp.where(halved, r, best), jnp.where(halved, n, mark)
         return y, dict(F=F, v=v, m=m, dt=dt, alpha=alpha, npos=npos, n=n, evals=s["evals"] + 1,
-                       refused=refuse, admissible=admissible | refuse, r=r, best=best,
-                       mark=mark)
+                       refused=refuse, admissible=admissible | refuse, r=r, scale=scale,
+                       best=best, mark=mark)
 
     def terminate(self, system, y, args, s):
         started = s["n"] > 0                      # F is the force at y after step 0
