@@ -192,11 +192,14 @@ def spectral_bound(H, squarings: int = 3):
     one eigenvalue dominates (StVK element stiffnesses of the closed benchmark valve:
     below 1.0001; `tests/test_energies.py`).  H is scaled by its Frobenius norm first (no
     overflow, in float32 too).  A few batched matrix products: ~5 ms against ~32 ms for
-    `jnp.linalg.eigvalsh` on the 3987 9x9 element blocks of the benchmark valve."""
+    `jnp.linalg.eigvalsh` on the 3987 9x9 element blocks of the benchmark valve.  Each
+    product is written as n elementwise outer products (one fused loop): fed by the
+    element Hessians of a FIRE mass refresh, XLA's batched ``B @ B`` cost 1.0 ms
+    against 0.23 ms on the 1371 blocks at h = 1.5 mm."""
     f = jnp.sqrt(jnp.sum(H * H, axis=(-2, -1)))
     B = H / jnp.where(f > 0, f, 1.0)[..., None, None]
     for _ in range(squarings):
-        B = B @ B
+        B = sum(B[..., :, k, None] * B[..., None, k, :] for k in range(B.shape[-1]))
     t = jnp.sum(B * B, axis=(-2, -1))          # tr(B^(2m)) <= 1
     m2 = 2.0 ** (squarings + 1)
     return jnp.where(t > 0, f * jnp.where(t > 0, t, 1.0) ** (1.0 / m2), 0.0)
