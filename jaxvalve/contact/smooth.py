@@ -313,8 +313,9 @@ class SmoothContact:
         about 0.09 us per slot of its prefix, and the pairs in use range from a few while
         the leaflets swing shut to about 2000 of 6144 slots at 80 mmHg (the benchmark
         valve at h = 1.5 mm), so with three prefixes (down to 1/4) the swing-shut paid
-        for 1536 slots.  Five prefixes closed the valve 5-20 % faster for 1.3-2.5 s more
-        compilation (docs/benchmark-notes.md, "The pair energy's prefixes")."""
+        for 1536 slots.  Five prefixes closed it 1.06-1.08x faster for 1.4-2.9 s more
+        compilation (`benchmarks/step_savings.py`; docs/benchmark-notes.md, "A FIRE
+        step's cost")."""
         base = pairs.base
         R = base.rows
         sizes = bucket_sizes(pairs.soft_capacity, smallest=256, most=SOFT_PREFIXES, factor=2)
