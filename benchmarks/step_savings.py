@@ -137,6 +137,7 @@ def main(argv=None):
             me = statistics.median(runs[THIS])
             for v in VARIANTS[1:]:
                 same = info[v][2:] == info[THIS][2:]
+                same_metrics = info[v][3:] == info[THIS][3:]
                 if v in EXACT and not same:
                     raise SystemExit(f"{model}, {v}: steps or metrics differ from this "
                                      f"code's ({info[v][2:]} against {info[THIS][2:]})")
@@ -144,7 +145,8 @@ def main(argv=None):
                     f"{model}, this code against '{v}': speed-up "
                     f"{statistics.median(runs[v]) / me:.2f}x ({statistics.median(runs[v]):.3f}"
                     f" s against {me:.3f} s after compilation), compile "
-                    f"{info[THIS][1] - info[v][1]:+.1f} s, same steps and metrics: {same}")
+                    f"{info[THIS][1] - info[v][1]:+.1f} s, same steps: "
+                    f"{info[v][2] == info[THIS][2]}, same metrics: {same_metrics}")
     finally:
         variant(THIS)
     out.finish(summary, args.out)
