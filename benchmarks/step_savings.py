@@ -42,9 +42,8 @@ from jaxvalve.mechanics import assembly  # noqa: E402
 from jaxvalve.solvers import equilibrium  # noqa: E402
 from jaxvalve.simulation import build_scene_valve  # noqa: E402
 from jaxvalve.xla_setup import platform_summary  # noqa: E402
-from closure_speed import MODELS, Tee  # noqa: E402  (this folder is on the path of a script)
+from closure_speed import METRICS, MODELS, Tee  # noqa: E402  (this folder is on the path)
 
-METRICS = ("h_E", "h_CC", "h_avr", "NCCA_pct", "h", "h_c")
 THIS = "this code"
 EXACT = ("3 prefixes", "scale apart")       # variants that must give the same numbers
 
@@ -141,6 +140,10 @@ def main(argv=None):
                 if v in EXACT and not same:
                     raise SystemExit(f"{model}, {v}: steps or metrics differ from this "
                                      f"code's ({info[v][2:]} against {info[THIS][2:]})")
+                if not (info[v][3] and info[THIS][3]):
+                    summary.append(f"{model}, this code against '{v}': no speed-up "
+                                   "figure: a closure did not converge")
+                    continue
                 summary.append(
                     f"{model}, this code against '{v}': speed-up "
                     f"{statistics.median(runs[v]) / me:.2f}x ({statistics.median(runs[v]):.3f}"

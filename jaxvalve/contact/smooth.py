@@ -313,9 +313,9 @@ class SmoothContact:
         about 0.06-0.09 us per slot of its prefix, and the pairs in use range from a few
         while the leaflets swing shut to about 2000 of 6144 slots at 80 mmHg (the
         benchmark valve at h = 1.5 mm), so with three prefixes (down to 1/4) the
-        swing-shut paid for 1536 slots.  Five prefixes closed it 1.05-1.09x faster for 1.4-3.4 s more
-        compilation (`benchmarks/step_savings.py`; docs/benchmark-notes.md, "A FIRE
-        step's cost")."""
+        swing-shut paid for 1536 slots.  Five prefixes closed it 1.05-1.09x faster for
+        1.4-3.4 s more compilation (`benchmarks/step_savings.py`; docs/benchmark-notes.md,
+        "A FIRE step's cost")."""
         base = pairs.base
         R = base.rows
         sizes = bucket_sizes(pairs.soft_capacity, smallest=256, most=SOFT_PREFIXES, factor=2)
