@@ -48,7 +48,7 @@ from jaxvalve.simulation import build_scene_valve
 RESULTS = Path(__file__).resolve().parent / "results"
 HEIGHTS = ("h_E", "h_CC", "h_avr", "h_max", "h_c")    # mm (h_max: the metric h); NCCA (%) apart
 METRICS = HEIGHTS + ("NCCA_pct",)
-REF = dict(h=0.44, solver="fire", rtol=1e-6, precision="float64")
+REF = dict(h=0.44, solver="engine", rtol=1e-6, precision="float64")
 KEY = ("model", "solver", "rtol", "precision", "h")
 TOL_MM = 0.1
 
@@ -59,12 +59,12 @@ def settings(models, quick=False, full=("stvk",)):
     0.44 mm and FIRE 1e-4 on h = 4 ... 0.44 mm, but 1e-3 and 1e-5 on h = 2 and 0.88 mm
     only, and Algorithm 2.1 and float32 on h = 2 mm only)."""
     out = []
-    f64 = dict(solver="fire", precision="float64")
+    f64 = dict(solver="engine", precision="float64")
     if quick:
         for m in models:
             out += [dict(model=m, **dict(REF, h=1.5)),
                     dict(model=m, rtol=1e-4, h=2.0, **f64),
-                    dict(model=m, solver="fire", rtol=1e-4, precision="float32", h=2.0),
+                    dict(model=m, solver="engine", rtol=1e-4, precision="float32", h=2.0),
                     dict(model=m, solver="paper", rtol=0.0, precision="float64", h=2.0)]
         return out
     for m in models:
@@ -77,7 +77,7 @@ def settings(models, quick=False, full=("stvk",)):
                     for h in ((2.0, 1.5, 1.2, 0.88) if whole else (2.0, 0.88))]
         out += [dict(model=m, solver="paper", rtol=0.0, precision="float64", h=h)
                 for h in ((2.0, 1.5) if whole else (2.0,))]
-        out += [dict(model=m, solver="fire", rtol=rtol, precision="float32", h=h)
+        out += [dict(model=m, solver="engine", rtol=rtol, precision="float32", h=h)
                 for rtol in (1e-4, 1e-3) for h in ((2.0, 1.5) if whole else (2.0,))]
     return out
 

@@ -209,7 +209,7 @@ class RunRecord:
     outcome: str = ""
     cause: str = ""
     result: str = ""
-    path: str = ""                   # the closure path that gave the result (fallback)
+    path: str = ""                   # the closure path that gave the result
     steps: int = 0
     residual: float = math.nan
     limit_pressure: float = math.nan  # mmHg: the highest equilibrium, where a limit point
@@ -242,7 +242,7 @@ def ipctk_intersects(valve, x) -> bool | None:
     except ImportError:
         return None
     tri = valve.triangles
-    keep = ~np.any(valve.barrier_topology.pin[tri] >= 0, axis=1)   # commissure rings
+    keep = np.asarray(valve.contact_topology.tri_pin) < 0          # commissure rings
     t = tri[keep]
     used, inv = np.unique(t, return_inverse=True)
     t = inv.reshape(t.shape).astype(np.int32)
@@ -271,12 +271,10 @@ def _judge(rec: RunRecord, valve, ls, scene: Scene):
     finite = bool(np.all(np.isfinite(x64)))
     notes = []
     if finite:
-        # a state of the barrier law (self-contact) may hold a sharp crease open: there
-        # the folds are free, and ipctk (which checks each leaflet against itself too) is
-        # the check that no leaflet has folded through itself
-        barrier = "barrier" in rec.path
-        tc = triangle_checks(valve.ref, valve.triangles, x64,
-                             fold_deg=180.0 if barrier else FOLD_DEG)
+        # a crease of the barrier law is held below 180 degrees by the hinges' fold
+        # barrier; ipctk (which checks each leaflet against itself too) is the check that
+        # no leaflet has folded through itself
+        tc = triangle_checks(valve.ref, valve.triangles, x64, fold_deg=180.0)
         rec.min_J, rec.max_fold_deg, rec.max_stretch = tc.min_J, tc.max_fold_deg, tc.max_stretch
         rec.min_stretch = tc.min_stretch
         if not tc.ok:
@@ -332,9 +330,6 @@ def _judge(rec: RunRecord, valve, ls, scene: Scene):
     if len(ls.ramp.history) > 1:       # the continuation's solves, in order
         rec.cause += " [continuation: " + ", ".join(
             f"{q:.3g} mmHg {r}" for q, r, _, _ in ls.ramp.history) + "]"
-    if rep.fallback:                   # closed on the barrier law after the smooth failed
-        rec.cause = (rec.cause + " " if rec.cause else "") + f"[{rep.path} after " \
-            f"{rep.fallback}]"
     return rec
 
 
@@ -354,40 +349,10 @@ def _exception(rec: RunRecord, e: BaseException) -> RunRecord:
     return rec
 
 
-#: capacity of the contact pair lists a stress closure starts with, as a multiple of the
-#: default: soft leaflets at 200 mmHg crumple, and each overflow of the default lists
-#: costs a rebuild and a fresh compile (20-60 s here); with 4x one compile serves all.
-PAIR_CAPACITY = 4
-
-
-def _stale_pairs(valve, contact, dtype):
-    from jaxvalve.contact.neighbours import default_capacity, stale_list
-    from jaxvalve.contact.soft_pairs import default_soft_capacity, stale_soft_pairs
-    from jaxvalve.solvers.equilibrium import contact_cutoff
-    prob = valve.problem
-    n = prob.n_nodes
-    cutoff = contact_cutoff(contact, None, prob.triangles, valve.skin)
-    base = stale_list(n, prob.triangles, prob.body, cutoff,
-                      capacity=PAIR_CAPACITY * default_capacity(n), dtype=dtype)
-    if not getattr(contact, "soft_min", False):
-        return base
-    return stale_soft_pairs(base, PAIR_CAPACITY * default_soft_capacity(n))
-
-
-def _start_pairs(valve, scene: Scene):
-    """The pair list a stress closure starts from: an empty one of `PAIR_CAPACITY` times
-    the default capacity for FIRE on the smooth law, else None (the solve's default)."""
-    contact = scene.contact_law()
-    if scene.solver == "fire" and hasattr(contact, "energy"):
-        return _stale_pairs(valve, contact, scene.dtype)
-    return None
-
-
 def _first_stage(valve, scene: Scene):
     """The closure at `HE_PRESSURE` from the valve's start, as `simulate` runs it (the
     one closure driver, `jaxvalve.valve.closure.close_valve`): a `LoadSolve`."""
-    return close_valve(valve, scene, pressures=(HE_PRESSURE,),
-                       nbrs=_start_pairs(valve, scene))[0]
+    return close_valve(valve, scene, pressures=(HE_PRESSURE,))[0]
 
 
 def _next_stage(valve, scene: Scene, p, first):
@@ -396,15 +361,8 @@ def _next_stage(valve, scene: Scene, p, first):
     the first stage's state, with continuation in pressure where a solve runs away
     (``escaped``: a node farther from its start than the valve's diameter, soft leaflets
     ballooning out of the root), so that a load past the membrane's inflation limit ends
-    as ``limit_point``, and the barrier path as the fallback where the scene's fails."""
-    if first.report.fallback:          # the first stage closed on the barrier law
-        scene = scene.replace(contact="barrier", solver="newton")
-    ls = close_valve(valve, scene, pressures=(HE_PRESSURE, p), done=(first,),
-                     nbrs=_start_pairs(valve, scene))[1]
-    if first.report.fallback and not ls.report.fallback:
-        ls = dataclasses.replace(ls, report=dataclasses.replace(
-            ls.report, fallback=first.report.fallback))
-    return ls
+    as ``limit_point``."""
+    return close_valve(valve, scene, pressures=(HE_PRESSURE, p), done=(first,))[1]
 
 
 def run_group(valve, *, template: str, mesh: str, model: str, precision: str,
@@ -496,13 +454,10 @@ def run_penetration(valve, *, template: str, model: str = "stvk", precision: str
         x0 = penetrated_start(valve, x_closed, depth)
         n0 = len(V.leaflet_crossings(valve, x0))
         rec.start = f"penetrated ({n0} crossing pairs)"
-        # the start is no equilibrium: the driver ramps from p = 0, so a limit point can be
-        # claimed only from an equilibrium the continuation itself reaches; where the
-        # scene's law fails, the barrier path swings shut from the placement (the crossed
-        # start is no separated one: `closure.fall_back`)
+        # the barrier closes leaflets that are apart: the driver refuses a crossed start
+        # with a ParameterError naming it (reported, never a crossed state as converged)
         _judge(rec, valve, close_valve(valve, scene, x0=x0.astype(scene.dtype),
-                                       pressures=(P,), nbrs=_start_pairs(valve, scene))[0],
-               scene)
+                                       pressures=(P,))[0], scene)
     except Exception as e:  # noqa: BLE001
         _exception(rec, e)
     rec.wall_s = time.perf_counter() - t0
@@ -637,22 +592,6 @@ def pass_rate(records, precision: str = "float64") -> str:
             f"{row['limit']} = {good} of {row['tried']} runs ({100 * good / row['tried']:.1f} %)")
 
 
-#: the stall probe's verdicts (`jaxvalve.solvers.stall.StallReport.cause`), by a phrase
-#: of each
-STALL_VERDICTS = (("at its rounding floor", "is at the rounding floor of"),
-                  ("on a jump of the force", "is discontinuous at node"),
-                  ("slow", "the solve is slow, not stuck"))
-
-
-def stall_verdict(cause: str) -> str | None:
-    """The stall probe's verdict named in a run's ``cause`` (`STALL_VERDICTS`), the first
-    where it names several (the run's own; a failed path's follows in brackets), or
-    None."""
-    found = [(cause.find(phrase), name) for name, phrase in STALL_VERDICTS
-             if phrase in cause]
-    return min(found)[1] if found else None
-
-
 def format_table(records) -> str:
     """The pass table (per model x precision) and the list of non-converged runs."""
     t = summarise(records)
@@ -686,16 +625,6 @@ def format_table(records) -> str:
             causes[r.result] = causes.get(r.result, 0) + 1
     lines += ["", "Results of the runs that did not converge: "
               + ", ".join(f"{k} {v}" for k, v in sorted(causes.items(), key=lambda kv: -kv[1]))]
-    verdicts = {}
-    for r in records:
-        v = stall_verdict(r.cause) if r.outcome != "converged" else None
-        if v is not None:
-            key = (r.precision, v + (" (leaflets crossing)" if r.crossings > 0 else ""))
-            verdicts[key] = verdicts.get(key, 0) + 1
-    if verdicts:
-        lines += ["", "The stall probe's verdict on the runs that stopped short "
-                  "(`jaxvalve.solvers.stall`): " + ", ".join(
-                      f"{p} {v} {n}" for (p, v), n in sorted(verdicts.items()))]
     lims = [r for r in records if r.result == "limit_point" and r.outcome == "reported"]
     if lims:
         lines += ["", "Limit points and the inflation analysis "

@@ -4,18 +4,12 @@ Two halves, apart so that the compiled programs never depend on whether anyone l
 
 * **Beacons.**  A single solve called with concrete values runs its compiled loop from the
   host in stretches of whole multiples of `BEACON_EVERY` steps, each lasting about
-  `STRETCH_S` (`next_stretch`, `solvers.equilibrium._solve_stretches`), and calls `beacon`
-  after each, with the step count and the relative residual: none of its
-  programs holds a host callback, which JAX's persistent compilation cache would refuse to
-  store.  Inside a trace the loop (`solvers.base.iterate`) calls it through
-  `jax.debug.callback` every `BEACON_EVERY` steps instead; the barrier Newton solver (a
-  host loop) calls it every step, and a batch member's own loop
-  (`iterate(members_apart=True)` or its hand-off) beacons through the callback and calls
-  `member_done` at its end.  A beacon only stores the latest figures (a lock and a few
-  assignments): it prints nothing.  Its cost is measured by
-  `benchmarks/progress_cost.py` (the same closure in stretches with beacons and as one
-  loop without, in one process).  Vectorised batch steps send none: under `vmap` the step
-  counter is per member, and the call would run at every step.
+  `STRETCH_S` (`next_stretch`, `solvers.equilibrium._run_host`), and calls `beacon`
+  after each, with the step count and the relative residual: none of its programs holds
+  a host callback, which JAX's persistent compilation cache would refuse to store.  The
+  engine's Newton finish (a host loop) calls it every step.  A solve inside a trace
+  (`jit`, the batch's `vmap`) sends none.  A beacon only stores the latest figures (a
+  lock and a few assignments): it prints nothing.
 * **The heartbeat.**  `Heartbeat(say)` wraps a command-line run: every line the run prints
   through `Heartbeat.say` becomes the current phase, and a daemon thread prints, whenever
   nothing was printed for ``every`` seconds (default 2), one line with the phase, the time

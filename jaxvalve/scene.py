@@ -22,28 +22,16 @@ from pathlib import Path
 from .errors import ParameterError
 from .geometry.template import Template
 
-__all__ = ["Scene", "BENCHMARK_TEMPLATE", "BENCHMARK_H", "MODELS", "SOLVERS", "CONTACTS",
-           "PRECISIONS"]
+__all__ = ["Scene", "BENCHMARK_TEMPLATE", "BENCHMARK_H", "MODELS", "SOLVERS", "PRECISIONS"]
 
 BENCHMARK_TEMPLATE = Template(r=12.0, a=7.1, b=15.0, alpha=160.0)
 BENCHMARK_H = 0.88
 MODELS = ("mass-spring", "stvk", "neo-hookean", "gent")
-SOLVERS = ("fire", "newton", "paper")
-CONTACTS = ("smooth", "paper", "barrier")
+#: "engine": the IPC barrier contact, closed by FIRE and a Newton finish
+#: (`jaxvalve.solvers.Engine`); "paper": the paper's contact law (2.2) and its damped
+#: fixed point, Algorithm 2.1, for comparison with the paper
+SOLVERS = ("engine", "paper")
 PRECISIONS = ("float64", "float32")
-
-
-#: FIRE's largest time step for valve closures (mass-scaled; the masses bound the stiffness,
-#: so every mode has angular frequency <= 1).  1.5 takes 15-25 % fewer steps than 1.0 on
-#: the benchmark valve (h = 1.5 mm, StVK and neo-Hookean, 3 and 80 mmHg); 2.0 made the
-#: StVK closure at 80 mmHg take 46 % more.
-VALVE_DT_MAX = 1.5
-
-#: Newton iterations of one barrier closure at most (``max_steps`` caps it lower): the
-#: benchmark valve takes 50-130 a load (`benchmarks/closure_speed.py`,
-#: `benchmarks/table4_barrier.py`); a load step not closed within it is cut by the
-#: continuation in pressure (`jaxvalve.solvers.continuation.cut_on`).
-BARRIER_NEWTON_STEPS = 200
 
 
 @dataclasses.dataclass(frozen=True)
@@ -61,14 +49,11 @@ class Scene:
     docs/benchmark-notes.md, "Run time against error").
     bending: plate bending stiffness as a multiple of the physical D = E H^3 / (12 (1 -
     nu^2)) (`jaxvalve.mechanics.bending`); 0 gives the specified pure membrane.
+    solver: "engine" (default: the IPC barrier contact, FIRE and a Newton finish) or
+    "paper" (the paper's contact law and Algorithm 2.1, for comparison).  max_steps:
+    the engine's FIRE steps a solve (or Algorithm 2.1's).
     precision: the floating type of the solve, "float64" (default) or "float32" (states,
-    parameters and forces; the metrics are always measured in float64).  The float32
-    spacing of the positions costs 2e-4 to 5e-3 of ||F_pressure|| at 3 mmHg (E = 0.1-20
-    MPa, h = 2 mm), so a float32 closure stops short of rtol = 1e-4 there, reported as at
-    its rounding floor (`jaxvalve.solvers.stall`; docs/known-limits.md).
-    fallback: where a closure on the smooth law fails (anything but a limit point), close
-    the valve again on the barrier law by projected Newton (`jaxvalve.valve.closure`,
-    "Fallback"; float64 only).  The reports name the path that closed each load.
+    parameters and forces; the metrics are always measured in float64).
     """
 
     r: float = BENCHMARK_TEMPLATE.r
@@ -89,30 +74,18 @@ class Scene:
     thickness: float = 0.3
     pressure: float = 80.0
     he_pressure: float = 3.0
-    contact: str = "smooth"
-    solver: str = "fire"
+    solver: str = "engine"
     rtol: float = 1e-4
-    max_steps: int = 50_000
+    max_steps: int = 20_000
     g_c: float = 0.5
     bending: float = 1.0
     precision: str = "float64"
-    fallback: bool = True
 
     def __post_init__(self):
         if self.model not in MODELS:
             raise ParameterError(f"model must be one of {MODELS}; got {self.model!r}")
         if self.solver not in SOLVERS:
             raise ParameterError(f"solver must be one of {SOLVERS}; got {self.solver!r}")
-        if self.contact not in CONTACTS:
-            raise ParameterError(f"contact must be one of {CONTACTS}; got {self.contact!r}")
-        if self.contact == "barrier" and self.solver != "newton":
-            raise ParameterError("contact='barrier' (IPC barrier, intersection-free) is solved "
-                                 "by solver='newton' (the projected Newton of "
-                                 "jaxvalve.solvers.barrier_newton); got solver="
-                                 f"{self.solver!r}")
-        if self.contact == "barrier" and self.precision != "float64":
-            raise ParameterError("contact='barrier' runs in float64 only (precision="
-                                 f"{self.precision!r} given)")
         if self.precision not in PRECISIONS:
             raise ParameterError(f"precision must be one of {PRECISIONS}; "
                                  f"got {self.precision!r}")
@@ -132,8 +105,6 @@ class Scene:
                 and self.bending >= 0):
             raise ParameterError(f"bending must be a finite multiple >= 0 of the plate modulus; "
                                  f"got {self.bending!r}")
-        if not isinstance(self.fallback, bool):
-            raise ParameterError(f"fallback must be true or false; got {self.fallback!r}")
         if not (isinstance(self.max_steps, int) and self.max_steps > 0):
             raise ParameterError(f"max_steps must be a positive integer; got {self.max_steps!r}")
         self.template()  # validates r, a, b, alpha
@@ -183,11 +154,9 @@ class Scene:
         return read_root(surface, landmarks, sutured_length=self.template().sutured_length)
 
     def contact_law(self):
+        """The contact law: the IPC barrier (the engine's), or the paper's (2.2)."""
         from .contact import BarrierContact, PaperContact
-        from .valve.model import valve_contact
-        if self.contact == "barrier":
-            return BarrierContact()
-        return valve_contact() if self.contact == "smooth" else PaperContact()
+        return BarrierContact() if self.solver == "engine" else PaperContact()
 
     def bending_law(self):
         """`Bending` (or None for a pure membrane, bending = 0)."""
@@ -195,14 +164,10 @@ class Scene:
         return Bending(float(self.bending)) if self.bending > 0 else None
 
     def make_solver(self):
-        from .solvers import FIRE, BarrierNewton, FixedPoint, NewtonKrylov
-        if self.contact == "barrier":
-            return BarrierNewton(rtol=self.rtol, max_steps=min(self.max_steps,
-                                                                BARRIER_NEWTON_STEPS))
-        if self.solver == "fire":
-            return FIRE(rtol=self.rtol, max_steps=self.max_steps, dt_max=VALVE_DT_MAX)
-        if self.solver == "newton":
-            return NewtonKrylov(rtol=self.rtol, warm_start=(FIRE(rtol=1e-2, max_steps=5000),))
+        """The engine (`jaxvalve.solvers.Engine`), or Algorithm 2.1 (`FixedPoint`)."""
+        from .solvers import Engine, FixedPoint
+        if self.solver == "engine":
+            return Engine(rtol=self.rtol, max_steps=self.max_steps)
         return FixedPoint(max_steps=self.max_steps)
 
     def as_dict(self) -> dict:

@@ -211,8 +211,7 @@ def simulate(scene: Scene | None = None, *, progress: Callable[[str], None] | No
     m_he = measure(valve, loads[0].x, scene.g_c)
     m = measure(valve, loads[1].x, scene.g_c)
     t_m = time.perf_counter() - t0
-    timings = dict(setup=setup, metrics=t_m, total=time.perf_counter() - t_all,
-                   start=loads[0].start_s)
+    timings = dict(setup=setup, metrics=t_m, total=time.perf_counter() - t_all)
     return SimulationResult(scene=scene, valve=valve, x=loads[1].x, x_he=loads[0].x,
                             metrics=m, metrics_he=m_he,
                             solves=tuple(ls.report for ls in loads), timings=timings)

@@ -10,8 +10,7 @@
   with its partial derivatives at fixed states (one compiled program, `_terms`).
 * ``gradient(ev)``: the objective's value and its gradient with respect to (r, a, b).
   The equilibria enter through the implicit adjoint: one solve K^T mu = df/dx per
-  closure (`jaxvalve.solvers.adjoint.solve_lu`; `adjoint="jax"` uses
-  `equilibrium.implicit_state`), pulled back to (r, a, b) by `pullback`
+  closure (`jaxvalve.solvers.adjoint.solve_lu`), pulled back to (r, a, b) by `pullback`
   (`jaxvalve.solvers.adjoint.residual_vjp`).  It never re-runs or unrolls the solver.
 
 Changing theta changes only traced values: nothing recompiles, unless the mapped mesh
@@ -27,15 +26,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxvalve.solvers import equilibrium
-from jaxvalve.valve.closure import admissible_start, close_load, separated, swing_shut
+from jaxvalve.contact.pairs import min_distance
+from jaxvalve.solvers.adjoint import fixed_pairs, residual_vjp, solve_lu
+from jaxvalve.valve.closure import admissible_start, close_load
 from jaxvalve import valve as V
 from jaxvalve.coaptation import annulus_level
 from jaxvalve.coaptation.smooth import smooth_metrics, smooth_plan
 from jaxvalve.valve.design import ValveDesign
 from jaxvalve.errors import ConvergenceError, ParameterError
 from jaxvalve.geometry.leaflet_mesh import mesh_leaflet
-from jaxvalve.quick_jit import quick_jit
 from jaxvalve.geometry.template import Template
 from jaxvalve.geometry.template_map import template_map
 
@@ -86,18 +85,14 @@ class Evaluator:
     def __init__(self, scene, objective: Objective, *, eps: float = 0.1,
                  min_angle: float = 15.0, progress=None, mesh_at=None,
                  warm_start: bool = True):
-        if (scene.solver, scene.contact) not in (("fire", "smooth"), ("newton", "barrier")):
-            raise ParameterError("optimisation needs solver='fire' with contact='smooth', or "
-                                 "solver='newton' with contact='barrier' (the paper's "
-                                 "contact law has no adjoint)")
+        if scene.solver != "engine":
+            raise ParameterError(f"optimisation needs solver='engine' (the barrier contact; "
+                                 f"the paper's contact law has no adjoint); got "
+                                 f"{scene.solver!r}")
         if not (0 < eps <= 0.5):
             raise ParameterError(f"eps must be in (0, 0.5] mm; got {eps}")
         self.scene, self.objective, self.eps, self.min_angle = scene, objective, eps, min_angle
         self.loads = tuple(l for l in LOAD_ORDER if l in objective.loads)
-        # closures at 80 mmHg only: contact on whole pair lists (one branch to compile, ~6 s
-        # less at h = 0.88 mm; most of the lists are in use there).  With the 3 mmHg
-        # closure (few live pairs) the prefixes pay, and one program serves both loads.
-        self.whole_lists = self.loads == ("closed",)
         self.pressure = {"he": scene.he_pressure, "closed": scene.pressure}
         self.material, self.contact = scene.material(), scene.contact_law()
         self.bending = scene.bending_law()
@@ -130,13 +125,11 @@ class Evaluator:
         self.generation += 1
         self.mesh_at = np.asarray(rab, float)
         self.capacity = self.w_band = None
-        self._grad_jit = jax.jit(jax.value_and_grad(
-            lambda rab, st, pl, ar: self._terms(rab, None, st, pl, ar, True), has_aux=True))
-        self._direct_jit = quick_jit(jax.value_and_grad(
-            lambda rab, xs, st, pl, ar: self._terms(rab, xs, st, pl, ar, False),
+        self._direct_jit = jax.jit(jax.value_and_grad(
+            lambda rab, xs, st, pl, ar: self._terms(rab, xs, st, pl, ar),
             argnums=(0, 1), has_aux=True))
         self._design_pull_jit = jax.jit(self._design_pullback)
-        self._metric_jac_jit = quick_jit(jax.jacrev(self._load_metrics, argnums=(0, 2)),
+        self._metric_jac_jit = jax.jit(jax.jacrev(self._load_metrics, argnums=(0, 2)),
                                        static_argnums=(1,))
         self._dcc_jit = jax.jit(self.d_cc)
         # host-side maps, compiled once per mesh (eager jax.numpy would compile each op)
@@ -214,20 +207,19 @@ class Evaluator:
                 seed = warm[load]
             elif warm is not None:
                 seed = warm.states[load][1].x
-            elif self.scene.contact == "barrier" and states:
-                # the barrier path closes in turn, as `simulate` does: 80 mmHg from the
-                # 3 mmHg equilibrium
+            elif states:
+                # in turn, as `simulate` closes: 80 mmHg from the 3 mmHg equilibrium
                 seed, p_from = states[LOAD_ORDER[0]][1].x, self.pressure[LOAD_ORDER[0]]
             else:
-                seed = self.valve.x_start   # not the other load's state: closing at
-                #                             80 mmHg from the 3 mmHg state chatters (FIRE)
-            x0 = self._x_fixed_jit(th, jnp.asarray(seed))
-            if self.scene.contact == "barrier" and not separated(self.valve, x0):
-                # the barrier closure needs a start with every pair apart: an earlier
-                # state moved to another template may touch
                 seed = self.valve.x_start
+            x0 = self._x_fixed_jit(th, jnp.asarray(seed))
+            if seed is not self.valve.x_start and not min_distance(
+                    self.valve.contact_topology, self._ref_jit(th), x0) > 0.5 * float(
+                        self.contact.dhat):
+                # an earlier state moved to this template has pairs that (nearly) touch:
+                # the barrier closes from apart only, so start from the placement
+                seed, p_from = self.valve.x_start, 0.0
                 x0 = self._x_fixed_jit(th, jnp.asarray(seed))
-            placed = seed is self.valve.x_start
             mat = self.material if material is None else material
             if mat.limit_free() is not mat:
                 # a start past the law's stretch limit (Gent): the design's placement
@@ -235,20 +227,12 @@ class Evaluator:
                 x0n = np.asarray(x0)
                 y = admissible_start(self.design_valve(rab), self.scene, x0n,
                                      material=mat, say=self.say)
-                if y is not x0n:                    # settled: x0n passed the limit
-                    x0, placed = jnp.asarray(y), True
-            if self.scene.contact == "barrier" and placed:
-                # from the placement, swung shut first, as `simulate` does: from the open
-                # valve the 80 mmHg closure at (12.5, 7.5, 15.5) missed rtol 1e-9 within
-                # its step budget; swung shut, 11 and 46 Newton steps
-                x0, _ = swing_shut(self.valve, self.scene, x0, ref=self._ref_jit(th),
-                                   material=mat)
-            # the one closure driver, with the mapped reference: the state check
-            # (crossed leaflets, folds), continuation where a solve runs away, the stall
-            # probe for a solve stopped at its step cap
+                if y is not x0n:
+                    x0, p_from = jnp.asarray(y), 0.0
+            if not p_from < self.pressure[load]:
+                p_from = 0.0           # an equilibrium at this load already: no ramp from it
             ls = close_load(self.valve, self.scene, self.pressure[load], x0, p_from=p_from,
-                            material=mat, ref=self._ref_jit(th),
-                            whole_lists=self.whole_lists)
+                            material=mat, ref=self._ref_jit(th))
             sol, rep = ls.solution, ls.report
             x = np.asarray(sol.x)
             ok = rep.converged and bool(np.all(np.isfinite(x)))
@@ -337,21 +321,17 @@ class Evaluator:
             if a is None else a
 
     # ------------------------------------------------------------------ gradient
-    def _terms(self, rab, xs, states, plans, area_ref, implicit):
-        """The objective from the closed states; with ``implicit`` the states enter through
-        `equilibrium.implicit_state` (JAX adjoint), else as x = x* on free nodes (held) and
-        the template's sutured positions on fixed nodes."""
+    def _terms(self, rab, xs, states, plans, area_ref):
+        """The objective from the closed states held fixed on free nodes, the template's
+        sutured positions on fixed nodes (the states' own dependence on (r, a, b) enters
+        through the adjoint, `gradient`)."""
         th = self._theta_traced(rab)
         metrics = {}
         fixed = self.valve.problem.fixed[:, None]
         for load in self.loads:
-            x0, sol = states[load]
+            x0, _ = states[load]
             x0 = self.design.x_fixed(th, x_free=x0)
-            if implicit:
-                params = self.base[load].replace(ref=self.design.ref(th))
-                x = equilibrium.implicit_state(self.valve.problem, params, x0, sol)
-            else:
-                x = jnp.where(fixed, x0, xs[load])
+            x = jnp.where(fixed, x0, xs[load])
             m = smooth_metrics(x, plans[load], self.eps)
             for name, (ld, key, fac, _, _) in METRICS.items():
                 if ld == load:
@@ -368,7 +348,7 @@ class Evaluator:
         """d/d(r, a, b) (3,) of <g_ref, ref(r, a, b)> + <g_x, x with sutured nodes placed>."""
         return jax.vjp(lambda q: self._placed(q, x), rab)[1]((g_ref, g_x))[0]
 
-    def pullback(self, rab, load, x, nbrs, mu, wrt_params=False, params=None):
+    def pullback(self, rab, load, x, pairs, mu, wrt_params=False, params=None):
         """d/d(r, a, b) (3,) of <mu, R(x with the template's sutured nodes, params(r, a,
         b))> at a closed state x of template (r, a, b) (its sutured nodes already where the
         template puts them); with ``wrt_params`` also its derivative with respect to the
@@ -377,11 +357,9 @@ class Evaluator:
         program the adjoint solve compiled serves; only the template's part (reference
         nodes and sutured positions) compiles here.  params: the load's `Params` at
         (r, a, b) when the caller has them (the adjoint's), else built here."""
-        from jaxvalve.solvers.adjoint import residual_vjp
-
         if params is None:
             params = self.base[load].replace(ref=self._ref_jit(self.theta(rab)))
-        gx, gp = residual_vjp(jnp.asarray(x), self.valve.problem, params, nbrs, mu)
+        gx, gp = residual_vjp(jnp.asarray(x), self.valve.problem, params, pairs, mu)
         g = self._design_pull_jit(rab, x, gp.ref, gx)
         return (g, gp) if wrt_params else g
 
@@ -400,8 +378,6 @@ class Evaluator:
         adjoint solve per metric (`jaxvalve.solvers.adjoint.solve_lu`, one factorisation
         per closure for all of them); raises
         `ConvergenceError` when ``ev`` did not converge or an adjoint solve failed."""
-        from jaxvalve.solvers.adjoint import solve_lu
-
         if not ev.converged:
             raise ConvergenceError(f"no sensitivities at (r, a, b) = {tuple(ev.rab)}: "
                                    f"{ev.reason}")
@@ -416,11 +392,12 @@ class Evaluator:
             J_rab, J_x = self._metric_jac_jit(rab, load, sol.x, ev.plans[load])
             params = self.base[load].replace(ref=self._ref_jit(th))
             # one assembly and factorisation for every metric of this load
-            mus, _ = solve_lu(self.valve.problem, params, sol.x, sol.nbrs,
+            pairs = fixed_pairs(sol)
+            mus, _ = solve_lu(self.valve.problem, params, sol.x, pairs,
                               np.asarray(J_x)[:len(names)])
             for k, name in enumerate(names):
                 mu = jnp.asarray(mus[k])
-                g_rab, gp = self.pullback(rab, load, sol.x, sol.nbrs, mu, True, params)
+                g_rab, gp = self.pullback(rab, load, sol.x, pairs, mu, True, params)
                 g = np.asarray(J_rab[k]) + np.asarray(g_rab)
                 d = dict(r=float(g[0]), a=float(g[1]), b=float(g[2]))
                 for f in dataclasses.fields(gp.material):
@@ -430,30 +407,18 @@ class Evaluator:
                 out[name] = d
         return out
 
-    def gradient(self, ev: Evaluation, adjoint: str = "lu"):
-        """(value, grad (3,), info) of the objective at a converged evaluation.
-
-        adjoint 'lu': K^T mu = df/dx by GMRES preconditioned with a sparse LU of the
-        assembled stiffness (`jaxvalve.solvers.tangent`, host); 'jax': `equilibrium.implicit_state`
-        (block-Jacobi GMRES inside JAX).  info: {'adjoint': [AdjointReport per closure]}.
+    def gradient(self, ev: Evaluation):
+        """(value, grad (3,), info) of the objective at a converged evaluation: the
+        partial derivatives at fixed states plus, per closure, one adjoint solve
+        K^T mu = df/dx (`jaxvalve.solvers.adjoint.solve_lu`, the exact tangent's LU)
+        pulled back to (r, a, b).  info: {'adjoint': [AdjointReport per closure]}.
         Raises `ConvergenceError` when ``ev`` did not converge (no adjoint of a
         non-equilibrium) or an adjoint solve missed its tolerance."""
-        from jaxvalve.solvers.adjoint import solve_lu
-
         if not ev.converged:
             raise ConvergenceError(f"no gradient at (r, a, b) = {tuple(ev.rab)}: {ev.reason}")
         if ev.generation != self.generation:
             raise ParameterError("this evaluation belongs to an earlier mesh generation")
         rab = jnp.asarray(ev.rab)
-        area_ref = jnp.asarray(self.area_ref)
-        if adjoint == "jax":
-            if self.scene.contact == "barrier":
-                raise ParameterError("adjoint='jax' (equilibrium.implicit_state) is not built "
-                                     "for the barrier contact; use adjoint='lu'")
-            (v, _), g = self._grad_jit(rab, ev.states, ev.plans, area_ref)
-            return float(v), np.asarray(g), {"adjoint": []}
-        if adjoint != "lu":
-            raise ParameterError(f"adjoint must be 'lu' or 'jax'; got {adjoint!r}")
         v, (g, gx) = ev.value, ev.partials        # from the forward evaluation's program
         g = np.asarray(g)
         reports = []
@@ -461,8 +426,9 @@ class Evaluator:
         for load in self.loads:
             x0, sol = ev.states[load]
             params = self.base[load].replace(ref=self._ref_jit(th))
-            mu, rep = solve_lu(self.valve.problem, params, sol.x, sol.nbrs, gx[load])
+            pairs = fixed_pairs(sol)
+            mu, rep = solve_lu(self.valve.problem, params, sol.x, pairs, gx[load])
             reports.append(rep)
-            g = g + np.asarray(self.pullback(rab, load, sol.x, sol.nbrs, jnp.asarray(mu),
+            g = g + np.asarray(self.pullback(rab, load, sol.x, pairs, jnp.asarray(mu),
                                              params=params))
         return float(v), g, {"adjoint": reports}

@@ -102,8 +102,8 @@ def _record(ev, state_it, value, grad, counts, seconds, extra):
     return r
 
 
-def _gradient(evaluator, ev, counts, adjoint):
-    v, g, info = evaluator.gradient(ev, adjoint)
+def _gradient(evaluator, ev, counts):
+    v, g, info = evaluator.gradient(ev)
     counts["gradient"] += 1
     if not (np.isfinite(v) and np.all(np.isfinite(g))):
         raise ConvergenceError(f"the objective or its gradient is not finite at (r, a, b) = "
@@ -112,7 +112,7 @@ def _gradient(evaluator, ev, counts, adjoint):
     return v, g, (max(a.residual for a in adj) if adj else float("nan"))
 
 
-def init(evaluator, optimizer, *, adjoint: str = "lu", warm=None) -> LoopState:
+def init(evaluator, optimizer, *, warm=None) -> LoopState:
     """Evaluate the start (the evaluator's scene r, a, b) and its gradient.
 
     Raises `ParameterError` for an infeasible start and `ConvergenceError` when the start
@@ -127,14 +127,13 @@ def init(evaluator, optimizer, *, adjoint: str = "lu", warm=None) -> LoopState:
     counts["forward"] += 1
     if not ev.converged:
         raise ConvergenceError(f"the start did not close: {ev.reason}", ev)
-    v, g, adj = _gradient(evaluator, ev, counts, adjoint)
+    v, g, adj = _gradient(evaluator, ev, counts)
     secs = time.perf_counter() - t0
     rec = _record(ev, 0, v, g, counts, secs, dict(step=0.0, trials=0, adjoint_residual=adj))
     return LoopState(0, ev, v, g, optimizer.init(rab), counts, secs, record=rec)
 
 
-def update(evaluator, optimizer, state: LoopState, *, adjoint: str = "lu",
-           max_step: float = 1.0, line_search: bool = True, max_trials: int = 6,
+def update(evaluator, optimizer, state: LoopState, *, max_step: float = 1.0, line_search: bool = True, max_trials: int = 6,
            gtol: float = 1e-3, ftol: float = 1e-5, max_iter: int = 30) -> LoopState:
     """One iteration: direction, line search, gradient at the accepted point."""
     if state.done:
@@ -176,7 +175,7 @@ def update(evaluator, optimizer, state: LoopState, *, adjoint: str = "lu",
         return dataclasses.replace(state, counts=counts, done=True,
                                    reason=f"line search failed after {trials} trials: {why}")
     try:
-        v, g_new, adj = _gradient(evaluator, accepted, counts, adjoint)
+        v, g_new, adj = _gradient(evaluator, accepted, counts)
     except ConvergenceError as e:
         return dataclasses.replace(state, counts=counts, done=True, reason=str(e), failed=True)
     secs = state.seconds + time.perf_counter() - t0

@@ -13,7 +13,6 @@ import numpy as np
 from jaxvalve import Scene
 from jaxvalve.errors import ConvergenceError, ParameterError
 from jaxvalve.io import check_out_dir
-from jaxvalve.valve.closure import fallback_scene
 
 from . import loop
 from .evaluate import Evaluator
@@ -81,7 +80,7 @@ def _config(scene, objective, optimizer, options):
 def optimize_template(scene: Scene | None = None, objective: Objective | None = None, *,
                       optimizer: str = "lbfgs", max_iter: int = 30, max_step: float = 1.0,
                       gtol: float = 1e-3, ftol: float = 1e-5, eps: float = 0.1,
-                      adjoint: str = "lu", out=None, resume: bool = False,
+                      out=None, resume: bool = False,
                       warm_start: bool | None = None, verify: bool = True,
                       verify_rtol: float = 1e-3,
                       figures: bool = True, evaluator: Evaluator | None = None,
@@ -103,9 +102,6 @@ def optimize_template(scene: Scene | None = None, objective: Objective | None = 
     reach; `OptimizationResult.check` and ``consistent`` report it.  scene None:
     `default_scene()` (the benchmark valve with rtol 1e-6, as ``jaxvalve optimize``); a
     given scene is used as it is, so pass rtol=1e-6 for gradients that match its CLI.
-    A start that does not close on the smooth law (FIRE) is closed on the barrier law
-    (projected Newton), and the whole run then uses that law, as `simulate`'s fallback
-    does (``scene.fallback``; not with a given evaluator); the trajectory's scene says so.
     """
     from jaxvalve.simulation import compile_timer
 
@@ -131,14 +127,14 @@ def optimize_template(scene: Scene | None = None, objective: Objective | None = 
     if warm_start is None:
         warm_start = True if evaluator is None else evaluator.warm_start
     options = dict(max_iter=max_iter, max_step=max_step, gtol=gtol, ftol=ftol, eps=eps,
-                   adjoint=adjoint, warm_start=bool(warm_start))
+                   warm_start=bool(warm_start))
     out = check_out_dir(out, "out")    # before any closure: a bad folder loses nothing
     config = _config(scene, objective, optimizer, options)
     opt = loop.make_optimizer(optimizer)
     say = progress or (lambda s: None)
     if resume and out is None:
         raise ParameterError("resume needs the run directory (out)")
-    kw = dict(adjoint=adjoint, max_step=max_step, gtol=gtol, ftol=ftol, max_iter=max_iter,
+    kw = dict(max_step=max_step, gtol=gtol, ftol=ftol, max_iter=max_iter,
               line_search=(optimizer == "lbfgs"))
     t_start = time.perf_counter()
     with compile_timer() as ct:
@@ -147,14 +143,8 @@ def optimize_template(scene: Scene | None = None, objective: Objective | None = 
             same = lambda c: {**c, "options": {k: v for k, v in c["options"].items()  # noqa
                                                if k != "max_iter"}}
             if same(json.loads(json.dumps(config))) != same(saved["trajectory"]["config"]):
-                alt = fallback_scene(scene)     # a run that fell back to the barrier law
-                alt_config = None if alt is None else _config(alt, objective, optimizer,
-                                                              options)
-                if alt is None or (same(json.loads(json.dumps(alt_config)))
-                                   != same(saved["trajectory"]["config"])):
-                    raise ParameterError(f"cannot resume {str(out)!r}: its scene, objective "
-                                         "or options differ from this run's")
-                scene, config = alt, alt_config
+                raise ParameterError(f"cannot resume {str(out)!r}: its scene, objective "
+                                     "or options differ from this run's")
             ck = saved["checkpoint"]
             records = saved["trajectory"]["records"]
             evaluator = _evaluator(evaluator, scene, objective, eps, ck["mesh_at"],
@@ -173,25 +163,9 @@ def optimize_template(scene: Scene | None = None, objective: Objective | None = 
                                    float(ck["seconds"]), record=records[-1])
             say(f"resumed at iteration {state.iteration}: objective {state.value:.6g}")
         else:
-            given = evaluator
             evaluator = _evaluator(evaluator, scene, objective, eps, None, warm_start)
             try:
-                try:
-                    state = loop.init(evaluator, opt, adjoint=adjoint)
-                except ConvergenceError as e:
-                    alt = fallback_scene(scene)
-                    ev = e.solution          # the start's `Evaluation`
-                    limit = ev is not None and any(sv["result"] == "limit_point"
-                                                   for sv in ev.solves)
-                    if alt is None or given is not None or limit:
-                        raise            # a limit point is the membrane's, as in simulate
-                    # the fallback of `simulate`, for the whole run: one contact law for
-                    # every closure and gradient of the run
-                    say(f"the start did not close on the smooth contact law ({e}); the "
-                        "whole run uses the barrier law (solver newton, contact barrier)")
-                    scene, config = alt, _config(alt, objective, optimizer, options)
-                    evaluator = _evaluator(None, scene, objective, eps, None, warm_start)
-                    state = loop.init(evaluator, opt, adjoint=adjoint)
+                state = loop.init(evaluator, opt)
             except ConvergenceError as e:                 # reported in the run directory
                 if out is not None:
                     write_trajectory(out, config, [], dict(done=True, failed=True,

@@ -26,8 +26,8 @@ def _pin_worker():
 _pin_worker()
 
 #: The suite is compile-bound: most tests compile a program and run it for little time.
-#: XLA's older CPU fusion emitters (what `jaxvalve.quick_jit` picks for short-running
-#: programs) compile faster; the newer default ones make faster loops.  Measured on one
+#: XLA's older CPU fusion emitters compile faster; the newer default ones make faster
+#: loops.  Measured on one
 #: file at a time (session 19): tests/test_design.py 110.6 -> 91.7 s, tests/test_batch.py
 #: 128.4 -> 115.0 s (CPU time 3m02 -> 2m29).  The suite passes with both; the benchmarks
 #: and the CLI keep XLA's defaults.  JAXVALVE_TEST_DEFAULT_EMITTERS=1 runs the suite on
@@ -73,11 +73,11 @@ LONGEST_FIRST = (
     "tests/test_optimize.py",        # 195, with test_notebooks (SAME_WORKER)
     "tests/test_patient_root.py",    # 200
     "tests/test_adjoint.py",         # 133
-    "tests/test_barrier_closure.py",  # 128
+    "tests/test_engine.py",
     "tests/test_design.py",          # 126
     "tests/test_admissible_start.py",  # 124
     "tests/test_batch.py",           # 121
-    "tests/test_soft_pairs.py",      # 121
+    "tests/test_pairs.py",
     "tests/test_contact.py",         # 120
     "tests/test_solvers.py",         # 118
     "tests/test_docs.py",            # 101
@@ -88,15 +88,11 @@ LONGEST_FIRST = (
 
 #: Files that run in the worker of another file, right after it, as one unit of the
 #: queue (`pytest_xdist_make_scheduler`), because they compile the same programs: the
-#: second then runs on the first's.  Measured with a throwaway plugin hashing every module
-#: XLA compiled: notebook 02 compiled 55.6 s of programs identical to test_optimize's
-#: (the evaluator's valve, h = 2.5 mm at 3 mmHg; test_notebooks releases them after
-#: notebook 02, in its fixture); test_valve_closure shares 12.0 s with
-#: test_barrier_closure (h = 1.5 mm; in the CI-like run 17.0 s against 36.7 s alone).
-#: The CLI, report and driver files share 36.5 s with test_docs, but run together they
-#: were no faster in the CI-like run and its largest worker grew from 6.1 to 7.2 GB.
+#: second then runs on the first's (notebook 02 and test_optimize: the evaluator's
+#: valve, h = 2.5 mm at 3 mmHg; test_valve_closure and test_engine: the benchmark valve
+#: at h = 1.5 mm).
 SAME_WORKER = {"tests/test_notebooks.py": "tests/test_optimize.py",
-               "tests/test_valve_closure.py": "tests/test_barrier_closure.py"}
+               "tests/test_valve_closure.py": "tests/test_engine.py"}
 
 
 @pytest.hookimpl(tryfirst=True, optionalhook=True)

@@ -91,7 +91,7 @@ def test_a_batch_member_past_its_limit_at_rest_is_refused_before_the_batched_pro
         valve, stretch, monkeypatch):
     from jaxvalve import batch, simulate_batch
     ran = []
-    monkeypatch.setattr(batch, "_run_batch", lambda *a, **kw: ran.append(a))
+    monkeypatch.setattr(batch, "_batched_load", lambda *a, **kw: ran.append(a))
     members = [M.Gent(mu=1.0 / 3.0, Jm=2.3), M.Gent(mu=1.0 / 3.0, Jm=0.5 * stretch[1])]
     with pytest.raises(ParameterError, match="Jm"):
         simulate_batch(SCENE, members, valve=valve)
@@ -121,7 +121,7 @@ def test_the_optimiser_settles_a_design_past_its_limit_and_closes_it(stretch, mo
     back to the barrier there, the evaluator does not)."""
     import optimize.evaluate as E
     from optimize import Evaluator, Objective, Target
-    scene = SCENE.replace(Jm=0.1, contact="barrier", solver="newton")
+    scene = SCENE.replace(Jm=0.1)
     ev = Evaluator(scene, Objective(targets=(Target("h_E", value=15.0),)))
     rab = (scene.r, scene.a, scene.b)
     good = ev.forward(rab)

@@ -379,42 +379,6 @@ def test_barrier_contact_rejects_bad_parameters():
         BarrierContact(stiffness=float("nan")).validate()
 
 
-def test_pair_kernels_sum_row_gradients_onto_nodes_and_compile_once_for_any_mesh():
-    """The barrier Newton's pair kernels take each chunk's coordinates, gathered on the
-    host: the energy and the node gradient equal jax.grad of the whole state's pair
-    energies (rows sharing nodes, padding rows of weight 0), and a state of another size
-    reuses the compiled kernel."""
-    from jaxvalve.solvers import barrier_newton as B
-    law = BarrierContact()
-    rng = np.random.default_rng(3)
-    sizes = []
-    for n in (40, 57):
-        x = rng.uniform(0.0, 1.0, size=(n, 3))
-        # 512 rows on 40-57 nodes share nodes: the scatter must add them
-        rows = np.stack([rng.choice(n, 4, replace=False) for _ in range(B.CHUNK)])
-        ee_rows = np.stack([rng.choice(n, 4, replace=False) for _ in range(B.CHUNK)])
-        w = rng.uniform(0.5, 1.0, B.CHUNK)
-        w[-7:] = 0.0                  # padding
-        eps = np.full(B.CHUNK, 1e-3)
-        # bring each point within d_hat of its triangle (the random edge pairs give some
-        # edge-edge terms inside d_hat too: asserted below)
-        x[rows[:, 0]] = x[rows[:, 1:]].mean(1) + 0.05 * law.dhat
-        for kernel, full, args, rr in (
-                (B._pt_value_grad, pt_energies, (w,), rows),
-                (B._ee_value_grad, ee_energies, (w, eps), ee_rows)):
-            e, g = kernel(law, x, rr, *args)
-            e_ref, g_ref = jax.value_and_grad(
-                lambda y: jnp.sum(full(law, y, jnp.asarray(rr), *map(jnp.asarray, args))))(
-                jnp.asarray(x))
-            np.testing.assert_allclose(float(e), float(e_ref), rtol=1e-12)
-            np.testing.assert_allclose(g, np.asarray(g_ref), rtol=1e-10,
-                                       atol=1e-12 * np.abs(np.asarray(g_ref)).max())
-            assert np.abs(np.asarray(g_ref)).max() > 0
-        sizes.append((B._pt_rows_value_grad._cache_size(),
-                      B._ee_rows_value_grad._cache_size()))
-    assert sizes[1] == sizes[0]
-
-
 def test_collision_weights_on_the_host_equal_the_traced_ones_and_sum_to_the_area():
     """The barrier topology's weights come from NumPy (`collision_weights(..., xp=np)`),
     the adjoint's from JAX: the same function, the same values.  A node's weights are

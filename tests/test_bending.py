@@ -249,14 +249,14 @@ def test_assembly_zero_scale_equals_membrane_and_unit_scale_adds_bending_force()
     @jax.jit
     def membrane(params):                       # bending=None
         g = assembly.prepare(prob, params)
-        return (assembly.residual(x, prob, params, g),
-                assembly.conservative_energy(x, prob, params, g))
+        return (assembly.membrane_force(x, prob, params, g)[0],
+                assembly.internal_energy(x, prob, params, g))
 
     @jax.jit
     def parts(params):                          # bending=Bending(scale): one compilation
         g = assembly.prepare(prob, params)
-        return (assembly.residual(x, prob, params, g), assembly.stiffness_bound(x, prob, params, g),
-                assembly.conservative_energy(x, prob, params, g))
+        return (assembly.membrane_force(x, prob, params, g)[0], assembly.stiffness_bound(x, prob, params, g),
+                assembly.internal_energy(x, prob, params, g))
 
     def res(params):
         r, b, e = parts(params)
@@ -282,8 +282,24 @@ def test_assembly_zero_scale_equals_membrane_and_unit_scale_adds_bending_force()
     assert np.all(b_s >= b0) and np.any(b_s > b0)
     # the bound bounds the stiffness: lambda_max of the Hessian of the conservative energy
     bent = base.replace(bending=B.Bending(s))
-    K = jax.jit(jax.hessian(lambda y: assembly.conservative_energy(
+    K = jax.jit(jax.hessian(lambda y: assembly.internal_energy(
         y, prob, bent, assembly.prepare(prob, bent))))(x)
     n = x.size
     lam = np.max(np.abs(np.linalg.eigvalsh(np.asarray(K).reshape(n, n))))
     assert lam <= np.max(b_s)
+
+
+def test_fold_barrier_is_c2_at_its_threshold_and_unbounded_at_a_flat_fold():
+    """`fold_barrier`: zero, with its first two derivatives, at cos(FOLD_BARRIER_DEG);
+    positive and growing past it; +inf as the hinge folds flat (n1 . n2 -> -1)."""
+    import jax
+    from jaxvalve.mechanics.bending import FOLD_BARRIER_DEG, fold_barrier
+    c0 = float(np.cos(np.radians(FOLD_BARRIER_DEG)))
+    b = jax.jit(fold_barrier)
+    d1, d2 = jax.grad(fold_barrier), jax.grad(jax.grad(fold_barrier))
+    for c in (c0 + 1e-9, 0.0, 0.9):
+        assert float(b(c)) == 0.0 and float(d1(c)) == 0.0
+    assert abs(float(d1(c0 - 1e-7))) < 1e-9 and abs(float(d2(c0 - 1e-7))) < 1e-4
+    vals = [float(b(c)) for c in np.linspace(c0 - 1e-3, -1 + 1e-9, 20)]
+    assert all(v > 0 for v in vals) and np.all(np.diff(vals) > 0)
+    assert float(b(-1 + 1e-30)) > 10 * float(b(-1 + 1e-6)) > 0

@@ -106,7 +106,7 @@ def test_a_warm_compilation_cache_prints_no_cache_loader_warning(tmp_path):
     import sys
     env = dict(os.environ, JAXVALVE_CACHE_DIR=str(tmp_path / "xla"))
     argv = [sys.executable, "-c", "from jaxvalve.cli import run; run()", "simulate",
-            "--h", "3", "--max-steps", "20", "--no-fallback"]
+            "--h", "3", "--max-steps", "20"]
     runs = [subprocess.run(argv, capture_output=True, text=True, env=env, timeout=600)
             for _ in range(2)]
     assert any((tmp_path / "xla").iterdir())          # the first run filled the cache

@@ -26,7 +26,7 @@ FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-
 @pytest.fixture(scope="module")
 def result():
     """A coarse valve stopped after 40 steps: not converged, still open."""
-    return simulate(Scene(h=3.0, max_steps=40, fallback=False), throw=False)
+    return simulate(Scene(h=3.0, max_steps=40), throw=False)
 
 
 @pytest.fixture(scope="module")

@@ -10,7 +10,7 @@ from jaxvalve.errors import MeshError, ParameterError
 from jaxvalve.mechanics.materials import Gent, MassSpring, NeoHookean, StVenantKirchhoff
 from jaxvalve.mechanics.problem import Params, make_problem, validate_params
 from jaxvalve.solvers import FIRE, FixedPoint, NewtonKrylov
-from jaxvalve.solvers.barrier_newton import BarrierNewton
+from jaxvalve.solvers.equilibrium import Engine
 from jaxvalve.solvers.predictor import BulgePredictor
 
 P, T = meshgen.rectangle(2.0, 1.0, 2, 1)
@@ -94,8 +94,6 @@ def test_bad_thickness_pressure_and_start_are_rejected():
     (lambda: FixedPoint(delta=-1.0), r"FixedPoint\.delta must be finite and > 0 \(or None\)"),
     (lambda: FixedPoint(step_rtol=1.5), r"FixedPoint\.step_rtol must be in \(0, 1\)"),
     (lambda: BulgePredictor(root_steps=0), r"BulgePredictor\.root_steps must be an integer"),
-    (lambda: BarrierNewton(ccd_s=1.0), r"BarrierNewton\.ccd_s must be in \(0, 1\)"),
-    (lambda: BarrierNewton(krylov_iters=2.5), r"BarrierNewton\.krylov_iters must be an integer"),
 ])
 def test_bad_solver_settings_are_rejected_when_the_solver_is_made(make, match):
     """Every solver checks its settings in ``__post_init__`` (one shared check,
@@ -112,4 +110,4 @@ def test_valid_solver_settings_are_accepted():
     FIRE(rtol=np.float64(1e-6), max_steps=np.int64(5), f_alpha=1.0)
     FixedPoint(rtol=None, delta=None, refresh=0)
     NewtonKrylov(warm_start=None, ls_steps=0)
-    BarrierNewton()
+    Engine()

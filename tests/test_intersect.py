@@ -198,23 +198,3 @@ def test_state_check_finds_a_leaflet_through_itself_on_any_law():
         assert state_failure(valve, apart, self_contact=sc) is None
 
 
-def test_a_leaflet_through_itself_is_no_separated_start():
-    """`closure.separated`, the fallback's test of a start: a triangle of one leaflet
-    piercing another of the same leaflet (no pair at distance 0: the barrier cannot see
-    the crossing) is no start; moved clear, it is."""
-    import types
-    from jaxvalve.contact.ipc_pairs import barrier_topology
-    from jaxvalve.valve.closure import separated
-    x = np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0], [0.0, 2.0, 0.0],
-                  [0.5, 0.5, -1.0], [0.5, 0.5, 1.0], [0.5, 1.2, 0.4]])
-    tri = np.array([[0, 1, 2], [3, 4, 5]])
-    ref = np.array([[0.0, 0.0], [2.0, 0.0], [0.0, 2.0], [5.0, -1.0], [5.0, 1.0], [5.8, 0.3]])
-    body, fixed = np.zeros(6, int), np.zeros(6, bool)
-    apart = x.copy()
-    apart[3:, 0] += 3.0
-    for y, ok in ((x, False), (apart, True)):
-        valve = types.SimpleNamespace(triangles=tri, body=body, ref=ref,
-                                      problem=types.SimpleNamespace(fixed=fixed),
-                                      barrier_topology=barrier_topology(tri, body, ref,
-                                                                        fixed, y))
-        assert separated(valve, y) is ok

@@ -191,10 +191,10 @@ def test_a_ramp_that_stalls_is_reported_as_stagnation_never_as_a_limit_point():
 
 
 def test_a_solver_may_declare_its_step_cap_a_load_step_too_long():
-    """The barrier Newton declares `max_steps_reached` a step too long (cut_on); FIRE
+    """The engine declares `max_steps_reached` a step too long (cut_on); FIRE
     declares nothing (neither its cap nor its stagnation), so its cap ends the ramp."""
     from jaxvalve.solvers.continuation import CUT_ON, cut_on
-    from jaxvalve.solvers import BarrierNewton
+    from jaxvalve.solvers.equilibrium import Engine
 
     class Capped(_Stalls):
         def __call__(self, p, x):
@@ -202,10 +202,10 @@ def test_a_solver_may_declare_its_step_cap_a_load_step_too_long():
             code = RESULTS.successful if sol.converged else RESULTS.max_steps_reached
             return type(sol)(x=sol.x, result=int(code), stats=sol.stats)
 
-    assert "max_steps_reached" in cut_on(BarrierNewton()) and cut_on(FIRE()) == ()
+    assert "max_steps_reached" in cut_on(Engine()) and "max_steps_reached" not in cut_on(FIRE())
     assert "stagnation" in CUT_ON
     s = Capped(reach=25.0)
-    out = ramp(s, np.array([3.0]), 80.0, 3.0, cut=cut_on(BarrierNewton()))
+    out = ramp(s, np.array([3.0]), 80.0, 3.0, cut=cut_on(Engine()))
     assert out.converged and s.tried == [80.0, 41.5, 22.25, 41.5, 80.0, 60.75, 80.0]
     s = Capped(reach=25.0)
     out = ramp(s, np.array([3.0]), 80.0, 3.0, cut=cut_on(FIRE()))
@@ -218,7 +218,7 @@ def test_a_barrier_step_that_lands_on_a_collapsed_triangle_is_cut():
     increment, as after a step cap; a crossing (which the barrier rules out by
     construction, so its cause lies elsewhere) still ends the ramp."""
     import types
-    from jaxvalve.solvers import BarrierNewton
+    from jaxvalve.solvers.equilibrium import Engine
     from jaxvalve.solvers.continuation import cut_on
 
     class Rejected(_Stalls):
@@ -232,14 +232,14 @@ def test_a_barrier_step_that_lands_on_a_collapsed_triangle_is_cut():
             return types.SimpleNamespace(x=np.array([p]), converged=False,
                                          status=self.state, stats=sol.stats)
 
-    assert "inverted_triangles" in cut_on(BarrierNewton())
+    assert "inverted_triangles" in cut_on(Engine())
     s = Rejected(reach=25.0)
-    out = ramp(s, np.array([3.0]), 80.0, 3.0, cut=cut_on(BarrierNewton()))
+    out = ramp(s, np.array([3.0]), 80.0, 3.0, cut=cut_on(Engine()))
     assert out.converged and s.tried == [80.0, 41.5, 22.25, 41.5, 80.0, 60.75, 80.0]
     assert float(out.x[0]) == 80.0
     s = Rejected(reach=25.0)
     s.state = "leaflets_cross"
-    out = ramp(s, np.array([3.0]), 80.0, 3.0, cut=cut_on(BarrierNewton()))
+    out = ramp(s, np.array([3.0]), 80.0, 3.0, cut=cut_on(Engine()))
     assert out.status == "leaflets_cross" and s.tried == [80.0]
 
 
@@ -247,7 +247,7 @@ def test_a_ramp_ends_when_its_step_budget_is_spent():
     """`Ramp.max_steps` bounds the solver steps of a ramp that creeps up (each solve 10
     steps here): it ends after the first failed solve past the budget, with that failure
     and the highest equilibrium reached; a ramp that converges within it is unchanged."""
-    from jaxvalve.solvers import BarrierNewton
+    from jaxvalve.solvers.equilibrium import Engine
     s = _Stalls(reach=0.1)
     out = ramp(s, np.array([3.0]), 80.0, 3.0, Ramp(max_steps=55))
     assert out.status == "stagnation" and not out.converged and not out.limit_point
@@ -255,7 +255,7 @@ def test_a_ramp_ends_when_its_step_budget_is_spent():
     assert out.pressure == 3.0 and out.final[1] == s.tried[-1] == 3.0 + 77.0 / 2**5
     s = _Stalls(reach=25.0)
     assert ramp(s, np.array([3.0]), 80.0, 3.0, Ramp(max_steps=70)).converged
-    assert Ramp.for_solver(BarrierNewton(max_steps=200)).max_steps == 2000
+    assert Ramp.for_solver(Engine(max_steps=200)).max_steps == 2000
     assert Ramp.for_solver(object()).max_steps is None
     with pytest.raises(ParameterError, match="max_steps"):
         Ramp(max_steps=0)
@@ -293,8 +293,8 @@ def test_solves_that_stall_just_past_a_fold_under_a_runaway_end_at_a_limit_point
     away the ramp's step budget no longer ends it (it only narrows a bracket then).
     Without a runaway the same stalls are reported as they are."""
     from jaxvalve.solvers.continuation import cut_on
-    from jaxvalve.solvers import BarrierNewton
-    cut = cut_on(BarrierNewton())
+    from jaxvalve.solvers.equilibrium import Engine
+    cut = cut_on(Engine())
     s = _Fold()
     out = ramp(s, np.array([3.0]), 80.0, 3.0, Ramp(max_steps=1000), cut=cut)
     assert out.status == "limit_point" and out.limit_point and not out.converged
@@ -323,10 +323,10 @@ def test_under_a_runaway_a_twice_stalled_pressure_bounds_the_bracket():
     of the 0.1 MPa springs (template (a), h = 2 mm): equilibria up to 46.0 mmHg, stalls
     at 46.3, a runaway at 51.1."""
     from jaxvalve.solvers.continuation import cut_on
-    from jaxvalve.solvers import BarrierNewton
+    from jaxvalve.solvers.equilibrium import Engine
     s = _Fold(fold=46.1, runaway=51.1)
     out = ramp(s, np.array([3.0]), 80.0, 3.0, Ramp(max_steps=1000),
-               cut=cut_on(BarrierNewton()))
+               cut=cut_on(Engine()))
     assert out.limit_point and out.pressure <= s.fold < out.p_stall < s.runaway
     assert out.p_stall - out.pressure <= 0.01 * out.p_stall
     hist = out.history
@@ -339,157 +339,13 @@ def test_under_a_runaway_a_twice_stalled_pressure_bounds_the_bracket():
     assert len(stalls) == 3 and out.steps == 1100   # retried after every equilibrium: 5, 1700
 
 
-class _Patient(_Fold):
-    """`_Fold` seen through a solver's patience: every solve above ``fold - early`` stops
-    early (`stagnation`, 60 steps): the runaways, before they have gone far enough to
-    count as runaways, and the solves just below the fold, where Newton converges slowly.
-    ``full`` is the same solve without that stop (the ramp's ``confirm``);
-    ``target_converges``: the full solve converges at the target (a solve that was about
-    to converge)."""
-
-    def __init__(self, target_converges=False, early=0.5, **kw):
-        super().__init__(**kw)
-        self.target_converges, self.early, self.confirmed = target_converges, early, []
-        self.caps = []
-
-    def __call__(self, p, x):
-        from jaxvalve.solvers import Solution, Stats
-        if p <= self.fold - self.early:
-            return super().__call__(p, x)
-        self.tried.append(p)
-        stats = Stats(steps=60, force_evals=60, hvps=0, residual=2e-3)
-        return Solution(x=np.array([float(x[0])]), result=int(RESULTS.stagnation),
-                        stats=stats)
-
-    def full(self, p, x, max_steps=None):
-        from jaxvalve.solvers import Solution, Stats
-        self.confirmed.append(p)
-        self.caps.append(max_steps)
-        if self.target_converges:
-            stats = Stats(steps=150, force_evals=150, hvps=0, residual=1e-9)
-            return Solution(x=np.array([p]), result=int(RESULTS.successful), stats=stats)
-        return _Fold.__call__(self, p, x, max_steps)
-
-
-def test_a_ramp_confirms_an_early_stop_before_it_ends_on_it():
-    """A solver's patience stops the runaways past a fold as it stops a cycling solve
-    (`stagnation`), so the ramp sees no runaway.  Before it ends on such a stop it solves
-    once more without the early stop (``confirm``), from its highest equilibrium straight
-    to the target: that solve runs away, and from there the ramp brackets the limit point
-    with full solves, so the early stops just below the fold do not place it too low.
-    Without ``confirm`` the same ramp ends as `stagnation`.  A full solve to the target
-    that converges ends the ramp converged; one that fails in another way ends it with
-    that failure, at once."""
-    from jaxvalve.solvers.continuation import cut_on
-    from jaxvalve.solvers import BarrierNewton
-    cut = cut_on(BarrierNewton())
-    s = _Patient()
-    out = ramp(s, np.array([3.0]), 80.0, 3.0, Ramp(max_steps=3000), cut=cut, confirm=s.full)
-    assert out.status == "limit_point", out.history
-    assert s.fold - s.early < out.pressure <= s.fold < out.p_stall < s.runaway
-    assert out.p_stall - out.pressure <= 0.01 * out.p_stall
-    # (the full solves under the runaway at 80 stop at 3 x 10 steps, before a runaway
-    # there escapes: `_bracket_cap`; they bound the bracket as stalls)
-    assert s.runaway <= out.p_escape <= 80.0
-    # the first full solve goes to the target (and runs away); from there every solve is
-    # a full one: the ramp brackets the limit with the solver that can tell a runaway
-    first = [q for q, *_ in out.history].index(80.0, 1)
-    assert out.history[first][:2] == (80.0, "escaped") and s.confirmed[0] == 80.0
-    assert s.confirmed == [q for q, *_ in out.history[first:]]
-    s = _Patient()
-    out = ramp(s, np.array([3.0]), 80.0, 3.0, Ramp(max_steps=3000), cut=cut)
-    assert out.status == "stagnation" and out.p_escape is None and s.confirmed == []
-    assert out.pressure <= s.fold - s.early
-    s = _Patient(target_converges=True)
-    out = ramp(s, np.array([3.0]), 80.0, 3.0, Ramp(max_steps=3000), cut=cut, confirm=s.full)
-    assert out.converged and out.pressure == 80.0 and s.confirmed == [80.0]
-    assert out.history[-1][:2] == (80.0, "successful")
-    s = _Patient(runaway=np.inf)                      # the full solve stalls as well
-    out = ramp(s, np.array([3.0]), 80.0, 3.0, Ramp(max_steps=3000), cut=cut, confirm=s.full)
-    assert out.status == "max_steps_reached" and s.confirmed == [80.0]
-    assert out.history[-1][:2] == (80.0, "max_steps_reached")
-    assert out.p_escape is None
-
-
-def test_a_solver_declares_its_full_solve_for_the_confirm_step():
-    """The barrier Newton with patience gives the same solver without it for the ramp's
-    confirm solves; without patience, or for FIRE (no early stop), there is none."""
-    from jaxvalve.solvers import BarrierNewton
-    from jaxvalve.solvers.continuation import full_solver
-    full = full_solver(BarrierNewton(patience=40, max_steps=123))
-    assert full == BarrierNewton(patience=0, max_steps=123)
-    assert full_solver(BarrierNewton(patience=0)) is None
-    assert full_solver(FIRE()) is None
-
-
-def test_under_a_runaway_full_solves_stop_at_a_few_times_the_slowest_converged_one():
-    """Near a fold a Newton solve from a nearby equilibrium converges in a few steps or
-    drifts to any cap, so under a runaway the ramp stops its full solves after
-    ``stall_factor`` times the most steps a converged solve of the ramp took (at least
-    ``stall_floor``): the same bracket and the same equilibrium as with the solver's own
-    cap (here 300 steps a stall, as with a floor of 300), for a fraction of the steps.
-    The first full solve, to the target before any runaway, keeps the solver's cap."""
-    from jaxvalve.solvers.continuation import cut_on
-    from jaxvalve.solvers import BarrierNewton
-    cut = cut_on(BarrierNewton())
-    runs = {}
-    for floor in (40, 300):
-        s = _Patient(fold=46.1, runaway=51.1)
-        out = ramp(s, np.array([3.0]), 80.0, 3.0, Ramp(max_steps=3000, stall_floor=floor),
-                   cut=cut, confirm=s.full)
-        assert out.limit_point, out.history
-        assert s.caps[0] is None and set(s.caps[1:]) == {floor}    # 3 x 10 steps < floor
-        runs[floor] = out
-    capped, full = runs[40], runs[300]
-    print("\ncapped:", capped.steps, [h[:3] for h in capped.history],
-          "\nfull:", full.steps, [h[:3] for h in full.history])
-    assert (capped.pressure, capped.p_stall) == (full.pressure, full.p_stall)
-    # a runaway stopped before it escaped (50 steps here) bounds the bracket as a stall
-    assert full.p_escape <= capped.p_escape
-    assert 2 * capped.steps < full.steps
-    # the cap follows the slowest converged solve: 3 x 20 steps above a floor of 40
-    assert Ramp().stall_factor == 3.0 and Ramp().stall_floor == 40
-    from jaxvalve.solvers.continuation import _bracket_cap
-    assert _bracket_cap(Ramp(), 20) == 60 and _bracket_cap(Ramp(), 5) == 40
-    assert _bracket_cap(Ramp(), 0) is None
-    with pytest.raises(ParameterError, match="stall_factor"):
-        Ramp(stall_factor=0.0)
-
-
-def test_a_hint_of_another_solvers_runaway_is_tried_after_the_first_runaway():
-    """``hint``, a pressure where another solver ran away on the same valve (the failed
-    path's, in the fallback): after its own first runaway the ramp tries it before
-    halving, and finds the same limit with fewer solves.  A hint that has an equilibrium
-    here raises the bracket's lower end; one outside the bracket is ignored.  Only the
-    ramp's own solves place the limit."""
-    plain, hinted = _Fold(fold=11.3, runaway=11.3), _Fold(fold=11.3, runaway=11.3)
-    a = ramp(plain, np.array([3.0]), 80.0, 3.0)
-    b = ramp(hinted, np.array([3.0]), 80.0, 3.0, hint=12.625)
-    assert a.limit_point and b.limit_point
-    assert plain.tried[:3] == [80.0, 41.5, 22.25] and hinted.tried[:2] == [80.0, 12.625]
-    assert b.pressure <= 11.3 < b.p_escape and b.p_escape - b.pressure <= 0.01 * b.p_escape
-    assert len(hinted.tried) < len(plain.tried)
-    # a hint with an equilibrium here (another law, or a solver that ran away early)
-    s = _Fold(fold=30.0, runaway=30.0)
-    out = ramp(s, np.array([3.0]), 80.0, 3.0, hint=12.625)
-    assert s.tried[:3] == [80.0, 12.625, 46.3125] and 12.625 <= out.pressure <= 30.0
-    assert out.limit_point and out.pressure < 30.0 < out.p_escape
-    # a hint above the target, or at the start, changes nothing
-    for hint in (90.0, 3.0):
-        s = _Fold(fold=11.3, runaway=11.3)
-        ramp(s, np.array([3.0]), 80.0, 3.0, hint=hint)
-        assert s.tried == plain.tried
-    with pytest.raises(ParameterError, match="hint"):
-        ramp(_Fold(), np.array([3.0]), 80.0, 3.0, hint=float("nan"))
-
-
 def test_a_bracket_closed_from_below_by_equilibria_ends_at_the_limit_point():
     """Where the fold lies just under a runaway, every midpoint under it converges and the
     bracket closes from below: the ramp ends at a limit point as soon as it is narrower
     than rtol, instead of creeping up to the runaway until its solves run out (the stress
     suite's neo-Hookean valve on template (c), 0.1 MPa at 80 mmHg: a runaway at 22.25
     mmHg, then 27 equilibria up to 22.2 mmHg, reported as `escaped`)."""
-    from jaxvalve.solvers import BarrierNewton
+    from jaxvalve.solvers.equilibrium import Engine
     from jaxvalve.solvers.continuation import cut_on
 
     class StallsAtTarget(_Fold):
@@ -500,7 +356,7 @@ def test_a_bracket_closed_from_below_by_equilibria_ends_at_the_limit_point():
 
     for s, first in ((_Fold(fold=22.249, runaway=22.25), "escaped"),
                      (StallsAtTarget(fold=22.249, runaway=22.25), "max_steps_reached")):
-        out = ramp(s, np.array([3.0]), 80.0, 3.0, cut=cut_on(BarrierNewton()))
+        out = ramp(s, np.array([3.0]), 80.0, 3.0, cut=cut_on(Engine()))
         assert out.history[0][1] == first
         assert s.tried[:3] == [80.0, 41.5, 22.25]        # 22.25 is the midpoint of 3-41.5
         assert out.status == "limit_point" and out.p_escape == 22.25 and out.p_stall is None

@@ -1,7 +1,6 @@
-"""equilibrium.solve checks every converged result with a program of its own (force,
-residual scale, stretch check): a compiled loop that claims an equilibrium it does not
-have is compiled anew and run again, and if it still disagrees the result is
-`RESULTS.inconsistent`, never a silent equilibrium."""
+"""equilibrium.solve checks every converged result with a program of its own (the
+residual by autodiff of the energies): a compiled loop that claims an equilibrium it does
+not have is reported as `RESULTS.inconsistent`, never as a silent equilibrium."""
 import dataclasses
 import logging
 
@@ -51,31 +50,17 @@ def test_a_loop_that_claims_a_false_equilibrium_is_reported_inconsistent(membran
     # the reported residual is the independent one: after 2 FIRE steps from the flat
     # membrane the free nodes still carry most of the pressure load
     assert 0.1 < float(sol.stats.residual) < 10.0, sol.describe()
-    assert "independent evaluation" in sol.describe()
-    assert "compiling the solve anew" in caplog.text
+    assert "independent evaluation" in caplog.text
     with pytest.raises(ConvergenceError, match="inconsistent"):
         equilibrium.solve(prob, params, x0, LiarFIRE(rtol=1e-8), throw=True)
-
-
-def test_a_loop_wrong_only_in_one_compilation_is_healed_by_compiling_it_anew(membrane):
-    prob, params, x0 = membrane
-    honest = equilibrium.solve(prob, params, x0, FIRE(rtol=1e-8), throw=False)
-    TRACES.pop(1, None)
-    sol = equilibrium.solve(prob, params, x0, LiarFIRE(rtol=1e-8, lies=1), throw=False)
-    assert TRACES[1] >= 2                      # compiled twice: the rerun was traced anew
-    assert sol.converged and float(sol.stats.residual) < 1e-8
-    assert float(jnp.max(jnp.abs(sol.x - honest.x))) < 1e-12
-    assert int(sol.stats.steps) == int(honest.stats.steps)
 
 
 def test_a_true_equilibrium_passes_the_recheck(membrane):
     prob, params, x0 = membrane
     sol = equilibrium.solve(prob, params, x0, FIRE(rtol=1e-8), throw=False)
-    bad = equilibrium.recheck(FIRE(rtol=1e-8), prob, params, x0, sol.x, sol.nbrs,
-                              jnp.asarray(0.0), sol.stats.residual)
-    assert sol.converged and bad is None
-    # the same state under a lower stretch limit is past it: not sound, whatever the loop said
-    tight = params.replace(material=Gent(mu=1 / 3, Jm=1e-3)) if hasattr(params, "replace") \
-        else dataclasses.replace(params, material=Gent(mu=1 / 3, Jm=1e-3))
-    assert equilibrium.recheck(FIRE(rtol=1e-8), prob, tight, x0, sol.x, sol.nbrs,
-                               jnp.asarray(0.0), sol.stats.residual) == float("inf")
+    assert sol.converged and equilibrium._recheck(prob, params, sol, 1e-8) is sol
+    # the same state under another material is no equilibrium (past a lower stretch
+    # limit, not even finite): not sound, whatever the loop said
+    tight = params.replace(material=Gent(mu=1 / 3, Jm=1e-3))
+    bad = equilibrium._recheck(prob, tight, sol, 1e-8)
+    assert int(bad.result) == RESULTS.inconsistent and not bad.converged

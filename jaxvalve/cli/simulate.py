@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 import sys
 
-from ..scene import CONTACTS, MODELS, PRECISIONS, SOLVERS
+from ..scene import MODELS, PRECISIONS, SOLVERS
 
 # flag -> (Scene field, type, help)
 _FLAGS = {
@@ -93,19 +93,13 @@ def add_scene_arguments(p):
             g.add_argument("--model", choices=MODELS,
                            help="material law (default stvk)")
         if title == "solver and metrics":
-            g.add_argument("--contact", choices=CONTACTS,
-                           help="contact law: smooth (one-sided penalty), paper, or "
-                                "barrier (IPC log barrier, leaflets never cross; with "
-                                "--solver newton) (default smooth)")
             g.add_argument("--solver", choices=SOLVERS,
-                           help="equilibrium solver (default fire)")
+                           help="closure method: engine (IPC barrier contact, leaflets "
+                                "never cross; FIRE with a Newton finish) or paper (the "
+                                "paper's contact law and damped fixed point, Algorithm "
+                                "2.1, for comparison) (default engine)")
             g.add_argument("--precision", choices=PRECISIONS,
                            help="floating type of the solve (default float64)")
-            g.add_argument("--no-fallback", dest="fallback", action="store_false",
-                           default=None,
-                           help="report a failed closure on the smooth law as it is, "
-                                "instead of closing the valve again on the barrier law "
-                                "(the default fallback)")
         for flag, typ, text in flags:
             g.add_argument(flag, type=typ, dest=_field(flag), metavar=typ.__name__.upper(),
                            help=text)
@@ -116,7 +110,7 @@ def make_scene(args):
     from ..errors import ParameterError
     from ..scene import Scene
 
-    names = ["model", "contact", "solver", "precision", "fallback"] + [
+    names = ["model", "solver", "precision"] + [
         _field(f) for fl in _FLAGS.values() for f, _, _ in fl]
     kw = {k: getattr(args, k) for k in names if getattr(args, k) is not None}
     if args.root is not None:

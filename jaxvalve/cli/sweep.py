@@ -86,9 +86,6 @@ def add_parser(sub):
                    help="relative force residual to reach (default 1e-4)")
     g.add_argument("--max-steps", type=int, default=50_000,
                    help="FIRE step limit per load and member (default 50000)")
-    g.add_argument("--no-fallback", dest="fallback", action="store_false",
-                   help="report a member whose closure fails on the smooth law as it is, "
-                        "instead of closing it again on the barrier law (the default)")
     g.add_argument("--no-figures", action="store_true", help="skip the heat map")
     return p
 
@@ -295,8 +292,7 @@ def run(args) -> int:
     if args.max_steps <= 0:
         raise JaxvalveError(f"--max-steps must be a positive integer; got {args.max_steps}")
     scene = Scene(h=args.h, model=groups[0][0], rtol=args.rtol, max_steps=args.max_steps,
-                  pressure=args.pressure, he_pressure=args.he_pressure,
-                  fallback=args.fallback)
+                  pressure=args.pressure, he_pressure=args.he_pressure)
     out = check_out_dir(args.out)           # before the solves: a bad --out loses nothing
     total = sum(len(m) for _, m in groups)
     with Heartbeat(say, unit="members") as hb:   # a line at least every 2 s

@@ -25,7 +25,8 @@ import numpy as np
 
 from .geometry import point_triangle_distance_np
 
-__all__ = ["PT_FACE", "PT_EDGE", "PT_VERTEX", "point_triangle_type",
+__all__ = ["PT_FACE", "PT_EDGE", "PT_VERTEX", "point_triangle_type", "point_triangle_weights",
+           "edge_edge_params",
            "point_triangle_distance2", "point_triangle_distance2_np",
            "edge_edge_type", "edge_edge_distance2",
            "line_line_distance2", "edge_edge_cross2", "mollifier",
@@ -40,28 +41,57 @@ def _dot(a, b):
     return jnp.sum(a * b, axis=-1)
 
 
-def point_triangle_type(p, t0, t1, t2):
-    """Active feature (int32, shape ...) of the triangle nearest to p: `PT_FACE`, an
-    `PT_EDGE` or a `PT_VERTEX` code (Voronoi regions, Ericson 2005, sec. 5.1.5).  No
-    gradient flows through it."""
+def _regions(p, t0, t1, t2):
+    """Ericson's (2005, sec. 5.1.5) dot products of p against the triangle: d1 ... d6 and
+    the barycentric numerators va, vb, vc, without gradient."""
     p, t0, t1, t2 = (jax.lax.stop_gradient(v) for v in (p, t0, t1, t2))
     ab, ac = t1 - t0, t2 - t0
     ap, bp, cp = p - t0, p - t1, p - t2
     d1, d2 = _dot(ab, ap), _dot(ac, ap)
     d3, d4 = _dot(ab, bp), _dot(ac, bp)
     d5, d6 = _dot(ab, cp), _dot(ac, cp)
-    vc = d1 * d4 - d3 * d2
-    vb = d5 * d2 - d1 * d6
-    va = d3 * d6 - d5 * d4
-    code = jnp.full(jnp.shape(d1), PT_FACE, jnp.int32)
-    # the tests in reverse order of precedence, so that the first true one wins
-    code = jnp.where((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0), PT_EDGE[1], code)
-    code = jnp.where((vb <= 0) & (d2 >= 0) & (d6 <= 0), PT_EDGE[2], code)
-    code = jnp.where((d6 >= 0) & (d5 <= d6), PT_VERTEX[2], code)
-    code = jnp.where((vc <= 0) & (d1 >= 0) & (d3 <= 0), PT_EDGE[0], code)
-    code = jnp.where((d3 >= 0) & (d4 <= d3), PT_VERTEX[1], code)
-    code = jnp.where((d1 <= 0) & (d2 <= 0), PT_VERTEX[0], code)
+    return d1, d2, d3, d4, d5, d6, d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
+
+
+def _region_tests(d1, d2, d3, d4, d5, d6, va, vb, vc):
+    """[(type code, test)] in order of precedence: the first true test names the feature
+    of the triangle nearest the point."""
+    return [(PT_VERTEX[0], (d1 <= 0) & (d2 <= 0)),
+            (PT_VERTEX[1], (d3 >= 0) & (d4 <= d3)),
+            (PT_EDGE[0], (vc <= 0) & (d1 >= 0) & (d3 <= 0)),
+            (PT_VERTEX[2], (d6 >= 0) & (d5 <= d6)),
+            (PT_EDGE[2], (vb <= 0) & (d2 >= 0) & (d6 <= 0)),
+            (PT_EDGE[1], (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0))]
+
+
+def point_triangle_type(p, t0, t1, t2):
+    """Active feature (int32, shape ...) of the triangle nearest to p: `PT_FACE`, an
+    `PT_EDGE` or a `PT_VERTEX` code (Voronoi regions, Ericson 2005, sec. 5.1.5).  No
+    gradient flows through it."""
+    r = _regions(p, t0, t1, t2)
+    code = jnp.full(jnp.shape(r[0]), PT_FACE, jnp.int32)
+    for c, test in reversed(_region_tests(*r)):      # the first true test wins
+        code = jnp.where(test, c, code)
     return code
+
+
+def point_triangle_weights(p, t0, t1, t2):
+    """Barycentric weights (..., 3) of the point of triangle (t0, t1, t2) nearest to p,
+    without gradient: the squared distance is |p - sum_k w_k t_k|^2, and with w held
+    fixed its gradient is the exact one (the closest point is a minimiser: envelope
+    theorem), which is how the barrier's forces are evaluated."""
+    d1, d2, d3, d4, d5, d6, va, vb, vc = r = _regions(p, t0, t1, t2)
+    ratio = lambda a, b: a / jnp.where(b != 0, b, 1.0)
+    zero, one = jnp.zeros_like(d1), jnp.ones_like(d1)
+    v, w = ratio(vb, va + vb + vc), ratio(vc, va + vb + vc)
+    out = jnp.stack([1 - v - w, v, w], -1)
+    e01, e12, e20 = ratio(d1, d1 - d3), ratio(d4 - d3, d4 - d3 + d5 - d6), ratio(d2, d2 - d6)
+    at = {PT_VERTEX[0]: (one, zero, zero), PT_VERTEX[1]: (zero, one, zero),
+          PT_VERTEX[2]: (zero, zero, one), PT_EDGE[0]: (1 - e01, e01, zero),
+          PT_EDGE[1]: (zero, 1 - e12, e12), PT_EDGE[2]: (1 - e20, zero, e20)}
+    for c, test in reversed(_region_tests(*r)):
+        out = jnp.where(test[..., None], jnp.stack(at[c], -1), out)
+    return out
 
 
 def _point_line2(p, a, b):
@@ -126,11 +156,18 @@ def _segment_params(xp, ea0, ea1, eb0, eb1, rel_tol=1e-10):
     return s, xp.clip(t, 0.0, 1.0)
 
 
+def edge_edge_params(ea0, ea1, eb0, eb1, rel_tol=1e-10):
+    """The closest points' parameters (s, t) in [0, 1] of two segments, without gradient
+    (as `point_triangle_weights`: with them fixed, the gradient of the squared distance is
+    the exact one)."""
+    ea0, ea1, eb0, eb1 = (jax.lax.stop_gradient(v) for v in (ea0, ea1, eb0, eb1))
+    return _segment_params(jnp, ea0, ea1, eb0, eb1, rel_tol)
+
+
 def edge_edge_type(ea0, ea1, eb0, eb1, rel_tol=1e-10):
     """Where the closest points of two segments lie: (ka, kb) int32 arrays, each 0 or 1
-    (that endpoint) or 2 (the interior), from `_segment_params`.  No gradient."""
-    ea0, ea1, eb0, eb1 = (jax.lax.stop_gradient(v) for v in (ea0, ea1, eb0, eb1))
-    s, t = _segment_params(jnp, ea0, ea1, eb0, eb1, rel_tol)
+    (that endpoint) or 2 (the interior), from `edge_edge_params`.  No gradient."""
+    s, t = edge_edge_params(ea0, ea1, eb0, eb1, rel_tol)
     code = lambda q: jnp.where(q <= 0, 0, jnp.where(q >= 1, 1, 2)).astype(jnp.int32)
     return code(s), code(t)
 

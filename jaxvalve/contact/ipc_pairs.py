@@ -1,7 +1,6 @@
-"""Broad phase of the barrier contact: point-triangle and edge-edge pairs of the leaflets.
-
-Host side (NumPy and scipy's k-d tree), run once per Newton iteration by the barrier
-closure (`jaxvalve.solvers.barrier_newton`), whose steps are taken on the host anyway.
+"""The host reference of the barrier's pair lists: point-triangle and edge-edge pairs of
+the leaflets, by NumPy and scipy's k-d tree (the tests compare the in-jit lists of
+`jaxvalve.contact.pairs` with it).
 `barrier_topology` is built once per valve; `build_pairs(topo, x, cutoff)` lists every
 node-triangle and edge-edge pair closer than ``cutoff`` (mm) in the state x (N, 3), with
 its squared distance: exact, not a bounding-volume superset.  The pairs are those of
@@ -25,7 +24,6 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from ..errors import ParameterError
 from ..geometry.broad_phase import ball_pairs
@@ -123,20 +121,11 @@ def barrier_topology(triangles, body, ref, fixed, x0, pin_tol=1e-9,
     ref = np.asarray(ref, float)
     fixed = np.asarray(fixed, bool)
     x0 = np.asarray(x0, float)
-    n = body.shape[0]
     edges, tri_edge = unique_edges(tri)
     edges, tri_edge = edges.astype(np.int64), tri_edge.astype(np.int64)
     node_w, edge_w, len2 = collision_weights(ref, tri, tri_edge, len(edges), xp=np)
-    pin = np.full(n, -1, np.int64)
-    idx = np.flatnonzero(fixed)
-    if idx.size:
-        pairs = cKDTree(x0[idx]).query_pairs(pin_tol, output_type="ndarray")
-        pairs = pairs[body[idx[pairs[:, 0]]] != body[idx[pairs[:, 1]]]]
-        for k, (i, j) in enumerate(pairs):
-            a, b = idx[i], idx[j]
-            p = max(pin[a], pin[b])
-            p = k if p < 0 else p
-            pin[a] = pin[b] = p
+    from .pairs import commissure_pins
+    pin = commissure_pins(body, fixed, x0, pin_tol)
     ref3 = np.pad(ref, ((0, 0), (0, 3 - ref.shape[1])))
     near_pt, near_ee = _template_neighbours(tri, edges, body, ref3, float(self_gap))
     return BarrierTopology(triangles=tri, edges=edges, tri_edge=tri_edge, body=body,

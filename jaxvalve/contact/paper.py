@@ -15,10 +15,11 @@ and triangle T of another body, with barycentre r_T and unit normal n_T:
 |F_i| = 0 is guarded: the d^pi > 0 branch tends to 0 and is set to 0, the other gives
 -k2 d^pi; no NaN.
 
-Broad phase: the pairs must include every (i, T) with |x_i - r_T| < d.  `build_neighbours`
-tests |x_i - r_T| < cutoff + R_T, so cutoff >= d (+ skin for reuse) suffices; since d grows
-when the leaflets stretch, build with e.g. ``cutoff = 1.25 * vicinity_threshold(x, tri) +
-skin`` (for the paper's ~1 mm triangles d is ~0.7 mm; a few mm in all for coarse meshes).
+Pairs: every (i, T) with |x_i - r_T| < d must be listed; a node closer than d to a
+triangle's barycentre is closer than d to the triangle, so the point-triangle rows of a
+pair list within d (`jaxvalve.contact.pairs`, rows [i, t0, t1, t2]) hold them; rows of one
+body are skipped (the law acts between bodies).  Since d grows when the leaflets stretch,
+the solve lists pairs within 1.25 d of its start (`jaxvalve.solvers.equilibrium`).
 """
 from __future__ import annotations
 
@@ -31,7 +32,6 @@ import jax.numpy as jnp
 
 from ..errors import ParameterError
 from .geometry import safe_norm
-from .neighbours import NeighbourList
 
 __all__ = ["PaperContact", "vicinity_threshold"]
 
@@ -62,17 +62,17 @@ class PaperContact:
                                      f"got {v} {unit}")
         return self
 
-    def pair_forces(self, x, F_nc, delta, triangles, nbrs: NeighbourList):
-        """Per-row contact forces (capacity, 3) in N (zero for padding/inactive rows)."""
-        n, m = x.shape[0], triangles.shape[0]
-        i = jnp.clip(nbrs.pairs[:, 0], 0, n - 1)
-        tri = triangles[jnp.clip(nbrs.pairs[:, 1], 0, m - 1)]
-        xt = x[tri]                                          # (P,3,3)
+    def pair_forces(self, x, F_nc, delta, pairs, body, d):
+        """Per-row contact forces (P, 3) in N of the point-triangle rows of ``pairs`` (a
+        `jaxvalve.contact.pairs.PairList`); zero for padding, inactive rows and rows
+        within one body (body (N,) ids); d: the vicinity threshold (mm)."""
+        rows = pairs.pt
+        i = rows[:, 0]
+        xt = x[rows[:, 1:]]                                  # (P,3,3)
         rT = jnp.mean(xt, axis=1)
         nT = jnp.cross(xt[:, 1] - xt[:, 0], xt[:, 2] - xt[:, 0])
         nrm = safe_norm(nT)
         nT = nT / jnp.where(nrm > 0, nrm, 1.0)[:, None]
-        d = vicinity_threshold(x, triangles)
         near = safe_norm(x[i] - rT) < d
         Fi = F_nc[i]
         Fmag = safe_norm(Fi)
@@ -82,14 +82,15 @@ class PaperContact:
                           Fmag * jnp.exp(-self.k1 * dpi / jnp.where(pos_ok, Fmag, 1.0)), 0.0)
         f_neg = Fmag - self.k2 * dpi
         mag = jnp.where(dpi > 0, f_pos, f_neg)
-        active = nbrs.valid & near & (dpi < self.d_pi)
+        active = (pairs.pt_valid & near & (dpi < self.d_pi)
+                  & (body[i] != body[rows[:, 1]]))
         return jnp.where(active[:, None], mag[:, None] * nT, 0.0)
 
-    def force(self, x, F_nc, delta, triangles, nbrs: NeighbourList):
+    def force(self, x, F_nc, delta, pairs, body, triangles):
         """Contact forces (N,3) in N, eq. (2.2), summed over the triangles of other bodies.
 
-        x (N,3) mm; F_nc (N,3) N non-contact (pressure + elastic) forces; delta mm/N.
-        """
-        f = self.pair_forces(x, F_nc, delta, triangles, nbrs)
-        i = jnp.clip(nbrs.pairs[:, 0], 0, x.shape[0] - 1)
-        return jnp.zeros_like(x).at[i].add(f)
+        x (N,3) mm; F_nc (N,3) N non-contact (pressure + elastic) forces; delta mm/N;
+        pairs: the point-triangle pair list; body (N,) ids; triangles (M, 3): the whole
+        mesh, for the vicinity threshold."""
+        f = self.pair_forces(x, F_nc, delta, pairs, body, vicinity_threshold(x, triangles))
+        return jnp.zeros_like(x).at[pairs.pt[:, 0]].add(f)

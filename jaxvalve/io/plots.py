@@ -43,11 +43,10 @@ def _axes(ax, **kw):
 def _status(result, load=1):
     """Title suffix naming a load's outcome unless it converged (load 0: the effective-
     height load, 1: the closing load): a figure never shows an unconverged state as if
-    it were one; a state closed by the barrier fallback says so."""
+    it were one."""
     r = result.solves[load]
     if r.converged:
-        return (f"\nclosed by {r.path} (the fallback: {r.fallback.split(':')[0]})"
-                if r.fallback else "")
+        return ""
     if r.result == "limit_point":
         return (f"\nLIMIT POINT: no equilibrium above {r.limit_pressure:.3g} mmHg; "
                 f"shown at {r.limit_pressure:.3g} mmHg")

@@ -1,4 +1,4 @@
-"""Assembly of nodal forces from the energies, the pressure load and contact.
+"""Assembly of the membrane's nodal forces from its energies and the pressure load.
 
 Pure JAX functions of the current positions ``x`` (N, 3) mm.  Elastic forces are
 ``-grad`` of the total strain energy (eq. 2.5); the pressure load is the follower force
@@ -108,40 +108,23 @@ def pressure_force(x, triangles, pressure):
                                            triangles, x.shape[0])
 
 
-def conservative_energy(x, problem, params, ref, nbrs=None):
-    """Strain energy plus bending (when asked for) plus the smooth contact energy (N mm)."""
+def internal_energy(x, problem, params, ref):
+    """Strain energy plus bending (where the params have it), N mm."""
     e = elastic_energy(x, problem, params, ref)
     if ref.hinge_w is not None:
-        D = params.bending.scale * bending.plate_modulus(params.material, params.thickness)
-        e = e + bending.bending_energy(x, problem.hinges, ref.hinge_w, D, problem.triangles)
-    c = params.contact
-    if c is not None and hasattr(c, "energy"):
-        e = e + c.energy(x, problem.triangles, nbrs, ref.node_area)
+        D0 = bending.plate_modulus(params.material, params.thickness)
+        e = e + bending.bending_energy(x, problem.hinges, ref.hinge_w,
+                                       params.bending.scale * D0, problem.triangles, D0)
     return e
 
 
-def force_parts(x, problem, params, ref, nbrs=None, delta=None):
-    """(elastic + smooth contact, pressure, paper-contact) nodal forces, each (N, 3), unmasked."""
-    f_cons = -jax.grad(conservative_energy)(x, problem, params, ref, nbrs)
-    f_p = pressure_force(x, problem.triangles, params.pressure)
-    c = params.contact
-    f_pc = jnp.zeros_like(x)
-    if c is not None and hasattr(c, "force"):
-        f_pc = c.force(x, (f_cons + f_p) * problem.free[:, None], delta, problem.triangles, nbrs)
-    return f_cons, f_p, f_pc
-
-
-def residual(x, problem, params, ref, nbrs=None, delta=None):
-    """Total force on free nodes (N, 3); zero rows at fixed nodes.  Equilibrium: residual = 0."""
-    return residual_and_scale(x, problem, params, ref, nbrs, delta)[0]
-
-
-def residual_and_scale(x, problem, params, ref, nbrs=None, delta=None):
-    """(`residual` (N, 3) N, `pressure_scale` () N) from one evaluation of the pressure
-    load: a solver that measures its relative residual every step needs both."""
-    f_cons, f_p, f_pc = force_parts(x, problem, params, ref, nbrs, delta)
+def membrane_force(x, problem, params, ref):
+    """(-grad of the internal energy + the pressure load on free nodes (N, 3) N, zero rows
+    at fixed nodes; ||pressure load|| on free nodes () N, the relative residual's scale)."""
     free = problem.free[:, None]
-    return (f_cons + f_p + f_pc) * free, jnp.linalg.norm(f_p * free)
+    g = jax.grad(internal_energy)(x, problem, params, ref)
+    fp = pressure_force(x, problem.triangles, params.pressure) * free
+    return (fp - g) * free, jnp.linalg.norm(fp)
 
 
 def pressure_scale(x, problem, params):
@@ -210,8 +193,8 @@ def stiffness_bound(x, problem, params, ref):
 
     lambda_max(K) <= max_i sum_{T ni i} lambda_max(K_T) (the element matrices are assembled
     into K), with the material at its stiffest tangent modulus and lambda_max(K_T) bounded
-    by `spectral_bound`.  Adds the pressure stiffness (|P| times the edge lengths at the node) and the
-    contact law's own bound."""
+    by `spectral_bound`.  Adds the pressure stiffness (|P| times the edge lengths at the
+    node) and the bending hinges'; contact stiffness is the solver's (`solvers.fire`)."""
     tri = problem.triangles
     Hs = _element_hessians(x, problem, params, ref, stiffest=True)
     lam = spectral_bound(Hs)  # (M,)
@@ -227,11 +210,4 @@ def stiffness_bound(x, problem, params, ref):
         per = 4.0 * D * ref.hinge_w / jnp.min(alt2)
         hv = jnp.broadcast_to(per[:, None], problem.hinges[:, :4].shape)
         bound = bound + jnp.zeros(problem.n_nodes, bound.dtype).at[problem.hinges[:, :4]].add(hv)
-    c = params.contact
-    if c is not None and hasattr(c, "energy"):
-        # penalty stiffness k a_i on the node and its reaction on the opposing triangle
-        bound = bound + 2.0 * c.stiffness * ref.node_area
-    elif c is not None:
-        # the paper's law: slope k2 from each of the ~6 triangles in a node's vicinity
-        bound = bound + 12.0 * c.k2
     return bound

@@ -22,7 +22,10 @@ reference length L_e) and current unit normals n1, n2 (dihedral angle theta_e):
 
 which tends to the plate energy (D / 2) \\int kappa^2 dA of a cylinder (within a few per
 cent on refined structured and Delaunay meshes; tested).  The flat
-template is the stress-free state, so the rest angle is zero.  The effective small-strain
+template is the stress-free state, so the rest angle is zero.  A hinge folded past 160
+degrees meets a barrier (`fold_barrier`, with the physical D whatever the bending scale):
+the bending energy's force vanishes as a fold nears 180 degrees, and a crease pinched by
+the pressure would otherwise fold through itself.  The effective small-strain
 moduli per model: StVK (E, nu); neo-Hookean and Gent (3 mu, 1/2); mass-spring (E1, 1/3).
 """
 from __future__ import annotations
@@ -37,7 +40,8 @@ import numpy as np
 from ..errors import ParameterError
 from .materials import Gent, MassSpring, NeoHookean, StVenantKirchhoff, _concrete
 
-__all__ = ["Bending", "hinges", "plate_modulus", "hinge_weights", "bending_energy"]
+__all__ = ["Bending", "hinges", "plate_modulus", "hinge_weights", "bending_energy",
+           "fold_barrier", "FOLD_BARRIER_DEG"]
 
 
 def hinges(triangles) -> np.ndarray:
@@ -92,14 +96,32 @@ def _unit(v):
     return jnp.where(ok, v / jnp.sqrt(jnp.where(ok, n2, 1.0)), 0.0)
 
 
-def bending_energy(x, hinge, weights, D, triangles):
-    """E_b (N mm) = D sum_e w_e (1 - n1 . n2) for positions x (N, 3); the unit normals are
-    computed once per triangle of ``triangles`` (M, 3) and read per hinge (columns 4, 5 of
-    `hinges`)."""
+#: A hinge folds freely up to this angle between its triangles' normals (degrees); past
+#: it the fold barrier (`fold_barrier`) grows without bound as the fold nears 180 degrees
+FOLD_BARRIER_DEG = 160.0
+_C_HAT = float(np.cos(np.radians(FOLD_BARRIER_DEG)))
+
+
+def fold_barrier(c):
+    """b(c) = -(c - c_hat)^2 ln((1 + c) / (1 + c_hat)) for c = n1 . n2 < c_hat =
+    cos(`FOLD_BARRIER_DEG`), else 0: zero with its first two derivatives at c_hat, +inf
+    at c = -1 (the sheet folded flat onto itself), so no hinge folds through: the IPC
+    barrier, on the fold of a hinge.  A real sheet of thickness H cannot fold sharper
+    than a radius of about H / 2, and the hinge model has no thickness."""
+    on = c < _C_HAT
+    q = jnp.where(on, jnp.maximum(1.0 + c, 1e-300), 1.0 + _C_HAT) / (1.0 + _C_HAT)
+    return jnp.where(on, -(c - _C_HAT) ** 2 * jnp.log(q), 0.0)
+
+
+def bending_energy(x, hinge, weights, D, triangles, D_fold=None):
+    """E_b (N mm) = sum_e w_e (D (1 - n1 . n2) + D_fold b(n1 . n2)) for positions x (N,
+    3), b the `fold_barrier` (D_fold default D); the unit normals are computed once per
+    triangle of ``triangles`` (M, 3) and read per hinge (columns 4, 5 of `hinges`)."""
     xt = x[triangles]
     n = _unit(jnp.cross(xt[:, 1] - xt[:, 0], xt[:, 2] - xt[:, 0]))
-    n1, n2 = n[hinge[:, 4]], n[hinge[:, 5]]
-    return D * jnp.sum(weights * (1.0 - jnp.sum(n1 * n2, -1)))
+    c = jnp.sum(n[hinge[:, 4]] * n[hinge[:, 5]], -1)
+    D_fold = D if D_fold is None else D_fold
+    return jnp.sum(weights * (D * (1.0 - c) + D_fold * fold_barrier(c)))
 
 
 @jax.tree_util.register_dataclass

@@ -1,10 +1,11 @@
-"""Equilibrium solvers: the paper's fixed point, FIRE and Newton-Krylov."""
-from .barrier_newton import BarrierNewton, solve_barrier
+"""Equilibrium solvers: the engine (FIRE, then a Newton finish), the paper's fixed point
+and Newton-Krylov for membranes without contact."""
 from .base import RESULTS, EquilibriumSystem, Solution, Stats, iterate
+from .equilibrium import Engine, solve
 from .fire import FIRE
 from .fixed_point import FixedPoint
 from .newton import NewtonKrylov
 from .predictor import BulgePredictor
 
-__all__ = ["RESULTS", "EquilibriumSystem", "Solution", "Stats", "iterate", "FIRE",
-           "FixedPoint", "NewtonKrylov", "BulgePredictor", "BarrierNewton", "solve_barrier"]
+__all__ = ["RESULTS", "EquilibriumSystem", "Solution", "Stats", "iterate", "Engine", "solve",
+           "FIRE", "FixedPoint", "NewtonKrylov", "BulgePredictor"]

@@ -1,14 +1,14 @@
 """Result codes, the solution record, the equilibrium system and the one driver loop.
 
 Solvers are immutable dataclasses with ``init``, ``step`` and ``terminate`` (optimistix
-style); `iterate` owns the `lax.while_loop`.  A solver sees the physics only through an
-`EquilibriumSystem`, whose functions have the form ``fn(y, args)``.
+style); `start`, `run` and `end` own the `lax.while_loop` (`iterate` is the three in one).
+A solver sees the physics only through an `EquilibriumSystem`, whose functions have the
+form ``fn(y, args)``.
 """
 from __future__ import annotations
 
 import dataclasses
 import enum
-import functools
 import math
 from typing import Any, Callable, NamedTuple
 
@@ -16,8 +16,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import progress
-from ..vmap_control import batch_sum, branches, each_active
 from ..errors import ParameterError
 
 
@@ -53,9 +51,9 @@ _MESSAGES = {
                       "no equilibrium near the start (a load past the structure's limit "
                       "point, or an unrestrained rigid-body drift)"),
     RESULTS.inconsistent: ("the solver's compiled loop reported convergence, but an "
-                           "independent evaluation of its result disagrees (residual, stretch "
-                           "check or finiteness), also after recompiling: a wrong compiled "
-                           "program, not an equilibrium"),
+                           "independent evaluation of its result disagrees (the residual by "
+                           "autodiff of the energies, on pair lists built afresh): a wrong "
+                           "compiled program, not an equilibrium"),
     RESULTS.unstable: ("the solve reached an equilibrium that is not stable (its exact "
                        "Jacobian has an eigenvalue of negative real part), and pushes "
                        "along that mode found no stable one: a state no closing valve "
@@ -68,28 +66,31 @@ class EquilibriumSystem(NamedTuple):
 
     force(y, args) -> (N, 3): total force, zero rows at fixed nodes.
     scale(y, args) -> (): force scale for the relative residual (||F_pressure||).
+    parts(y, args) -> (force (N, 3), scale (), nearest contact distance per node (N,) mm,
+    contact stiffness per node (N,) N/mm) from one evaluation (+inf and 0 without
+    barrier contact).
     admissible(y, args) -> bool: all triangles inside the material's stretch limit.
-    bound(y, args) -> (N,): per-node stiffness bound (N/mm).
+    bound(y, args) -> (N,): per-node stiffness bound (N/mm) of the membrane.
     block_diag(y, args) -> (N, 3, 3): stiffness diagonal blocks (preconditioner).
-    update(y, args) -> args: refresh of the contact pair list (identity without contact).
+    update(y, args) -> args: the contact pair lists brought up to date at y.
     overflow(args) -> bool: a pair list overflowed.
+    step_cap(y, args) -> (): the largest node move (mm) a step from y may take with the
+    pair lists of args (+inf without contact).
     laplacian(v, args) -> (N, k): cotangent Laplacian of the reference mesh applied to v.
     free: (N,) bool.
-    force_scale(y, args) -> ((N, 3), ()): force and scale from one evaluation (the scale
-    at P = 0 set from that force where ``args["f0"]`` is not yet, as `set_f0` does); None:
-    `force` and `scale` apart.
     """
 
     force: Callable
     scale: Callable
+    parts: Callable
     admissible: Callable
     bound: Callable
     block_diag: Callable
     update: Callable
     overflow: Callable
+    step_cap: Callable
     laplacian: Callable
     free: Any
-    force_scale: Callable | None = None
 
 
 @jax.tree_util.register_dataclass
@@ -107,13 +108,18 @@ class Stats:
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class Solution:
-    """Equilibrium ``x`` (N, 3) mm, ``result`` (RESULTS code, int array), `Stats`, and the
-    contact pair list used at the end (or None)."""
+    """Equilibrium ``x`` (N, 3) mm, ``result`` (RESULTS code, int array), `Stats`, and,
+    with contact, the pair ``lists`` at the end, their capacities ``caps`` and ``topo``
+    (`jaxvalve.contact.pairs`), for the adjoint and the next solve.  ``newton_steps``: the
+    steps of the engine's Newton finish (0: none ran)."""
 
     x: Any
     result: Any
     stats: Stats
-    nbrs: Any = None
+    lists: Any = None
+    caps: Any = dataclasses.field(default=None, metadata=dict(static=True))
+    topo: Any = None
+    newton_steps: int = dataclasses.field(default=0, metadata=dict(static=True))
 
     @property
     def converged(self):
@@ -204,173 +210,72 @@ def check_state(system, y, args, F, admissible=None):
     return code
 
 
-def force_and_scale(system, y, args):
-    """(F, scale) at y: `EquilibriumSystem.force_scale`, or `force` and `scale` apart
-    (with ``args["f0"]`` set from F, `set_f0`)."""
-    if system.force_scale is not None:
-        return system.force_scale(y, args)
-    F = system.force(y, args)
-    return F, system.scale(y, set_f0(args, F) if "f0" in args else args)
-
-
 def set_f0(args, F0):
     """Set the residual scale at P = 0 (``args["f0"]``, sentinel < 0) from a first force
-    (a no-op once set: the loop calls it after each step of a lazy-force solver, and FIRE
-    before it measures its residual in the step)."""
+    (a no-op once set)."""
     f0 = jnp.linalg.norm(F0)
     return dict(args, f0=jnp.where(args["f0"] < 0, jnp.where(f0 > 0, f0, 1.0), args["f0"]))
 
 
-#: the entries of ``args`` a loop step may change (`EquilibriumSystem.update`, `set_f0`)
-_STEP_ARGS = ("nbrs", "f0")
+class Carry(NamedTuple):
+    """The loop's carry: state y, args, the solver's state, step count n, done, result."""
+
+    y: Any
+    args: Any
+    state: Any
+    n: Any
+    done: Any
+    result: Any
 
 
-def _send_beacon(solver, system, y, args, state, n):
-    """Every `progress.BEACON_EVERY` steps: the step count and the relative residual to
-    the host (`jaxvalve.progress.beacon`)."""
-    name = type(solver).__name__
-
-    def send():
-        r = (relative_residual(system, y, args, state["F"]) if "F" in state
-             else jnp.asarray(jnp.nan, y.dtype))
-        jax.debug.callback(functools.partial(progress.beacon, solver=name), n, r)
-
-    jax.lax.cond(n % progress.BEACON_EVERY == 0, send, lambda: None)
-
-
-def iterate(solver, system, y0, args, *, members_apart: bool = False, handoff: int = 0,
-            beacon: bool = True):
-    """Run ``solver`` from y0 in one `lax.while_loop`.  Returns (y, args, state, result, n).
-    ``args`` must be current for y0 (its pair list built or updated there).
-
-    Under `jax.vmap` (`jaxvalve.batch`) the loop runs until every member has finished, and
-    a finished member's state is kept.  By default the steps of all members are one
-    vectorised program.  members_apart: each member runs its own loop, one member after
-    the other (`vmap_control.each_active`): the same compiled loop as a single solve, so a
-    member's result is that of a single solve to the last bit, and a finished member costs
-    nothing.  handoff (vectorised steps only): once at most ``handoff`` members are still
-    running, each of them finishes in its own loop, so that a straggler's last steps cost
-    what they cost alone, not a whole batch's vectorised step (0: never).  Unbatched, all
-    of these give the single solve.  beacon: send the loop's progress to the host
-    (`jaxvalve.progress`) through `jax.debug.callback`; a batched loop must pass False
-    (under vmap the call would run at every step).  A program with the callback is not
-    kept by the persistent compilation cache: a solve from the host runs the loop in
-    stretches instead (`loop_start`, `loop_chunk`, `loop_end`)."""
-    c = loop_start(solver, system, y0, args)
-    # The args other than the pair list and f0 are loop constants: carried only where the
-    # loop is the single solve's (or a plain vmap of it)
-    apart = members_apart or handoff > 0
-    args = c[1]
-    fixed = {k: v for k, v in args.items() if k not in _STEP_ARGS} if apart else {}
-    strip = lambda a: {k: v for k, v in a.items() if k not in fixed}
-    running = _running(solver)
-    stepper = lambda send: _stepper(solver, system, fixed, send)
-    trip = stepper(beacon)
-
-    def member_loop(*c):
-        # one member's own loop (`each_active`): unbatched, so it reports its progress and,
-        # at its end, that one more member has finished
-        c = jax.lax.while_loop(running, stepper(True), c)
-        jax.debug.callback(progress.member_done)
-        return c
-
-    def trip_kept(c):
-        # `trip` for a loop whose predicate is one for the batch: a member that has stopped
-        # keeps its carry (what vmap's own select does in the plain vectorised loop)
-        live = running(c)
-        return jax.tree_util.tree_map(lambda p, q: jnp.where(live, p, q), trip(c), c)
-
-    c = (c[0], strip(args), *c[2:])
-    if not apart:
-        c = jax.lax.while_loop(running, trip, c)
-    else:
-        if not members_apart:
-            # vectorised while more than ``handoff`` members run, the rebuilds too as one
-            # array program (`vmap_control.branches("select")`)
-            many = lambda c: batch_sum(running(c).astype(jnp.int32)) > handoff
-            with branches("select"):
-                c = jax.lax.while_loop(many, trip_kept, c)
-        # then each member still running finishes in its own loop, the single solve's
-        c = each_active(running(c), member_loop, *c)
-    y, args, state, n, done, result, y_upd = c
-    return loop_end((y, {**fixed, **args}, state, n, done, result, y_upd))
-
-
-def loop_start(solver, system, y0, args):
-    """The carry of `iterate`'s loop at y0: (y, args, state, n, done, result, y_upd),
-    with the solver's state and the residual scale at P = 0 (``f0``) set."""
+def start(solver, system, y0, args) -> Carry:
+    """The carry at y0.  A solver whose first step evaluates F(y0) (``lazy_force``:
+    FIRE's null step 0, which also brings the pair lists up to date) needs no force here,
+    nor the residual scale at rest (``args["f0"]``); the others get both, with the pair
+    lists brought up to date at y0."""
+    if getattr(solver, "lazy_force", False):
+        state = solver.init(system, y0, args)
+        return Carry(y0, args, state, jnp.asarray(0, jnp.int32), jnp.asarray(False),
+                     jnp.asarray(int(RESULTS.successful)))
+    args = system.update(y0, args)
     state = solver.init(system, y0, args)
-    lazy = getattr(solver, "lazy_force", False)   # F(y0) comes from the first step
-    if "f0" in args and not lazy:  # residual scale at P = 0: the initial force
-        F0 = state["F"] if "F" in state else system.force(y0, args)
-        args = set_f0(args, F0)
+    if "f0" in args and not getattr(solver, "lazy_force", False):
+        args = set_f0(args, state["F"] if "F" in state else system.force(y0, args))
     done, result = solver.terminate(system, y0, args, state)
-    return (y0, args, state, jnp.asarray(0), done, result, y0)
+    return Carry(y0, args, state, jnp.asarray(0, jnp.int32), done, result)
 
 
-def loop_chunk(solver, system, c, stop):
-    """The single solve's loop from the carry c (`loop_start`) until it is done, at its
-    step cap or at ``stop`` steps (traced), without beacons: the host calls it once per
-    `progress.BEACON_EVERY` steps and sends the beacon itself (`loop_residual`), so that
-    the compiled program holds no host callback and the persistent compilation cache
-    keeps it."""
-    running = _running(solver)
-    return jax.lax.while_loop(lambda c: running(c) & (c[3] < stop),
-                              _stepper(solver, system, {}, False), c)
-
-
-def loop_running(solver, c):
+def running(solver, c: Carry):
     """Whether the loop of carry c has steps left (not done, under the step cap)."""
-    return _running(solver)(c)
+    return (~c.done) & (c.n < solver.max_steps)
 
 
-def loop_residual(system, c):
-    """The relative residual of carry c, as a beacon reports it (nan before a force)."""
-    y, args, state = c[0], c[1], c[2]
-    return (relative_residual(system, y, args, state["F"]) if "F" in state
-            else jnp.asarray(jnp.nan, y.dtype))
-
-
-def loop_end(c):
-    """(y, args, state, result, n) of a finished carry: an unfinished loop is at its cap."""
-    y, args, state, n, done, result, _ = c
-    result = jnp.where(done, result, RESULTS.max_steps_reached)
-    return y, args, state, result, n
-
-
-def _running(solver):
-    def running(c):
-        _, _, _, n, done, _, _ = c
-        return (~done) & (n < solver.max_steps)
-    return running
-
-
-def _stepper(solver, system, fixed, send):
-    """One step of `iterate`'s loop on its carry; ``fixed``: the args held out of the
-    carry (members apart); ``send``: a beacon every `progress.BEACON_EVERY` steps."""
+def run(solver, system, c: Carry, stop=None) -> Carry:
+    """The loop from carry c until it is done, at its step cap, or at ``stop`` steps (a
+    traced count: a host-driven solve runs its loop in stretches between progress
+    reports; inside a trace the whole loop is one).  A solver's step brings the pair
+    lists up to date itself, before it evaluates a force."""
     lazy = getattr(solver, "lazy_force", False)
 
-    def update(y, args, done, y_upd):
-        # A vectorised batch also steps the members that have finished (and vmap discards
-        # the result).  Such a member updates its pair list at the state of its last update
-        # (a no-op: nothing is rebuilt), and the solver sees ``active`` False (FIRE then
-        # refreshes no masses).  In a single solve, done is False here and y_upd is y.
-        y_upd = jnp.where(~done, y, y_upd)
-        return system.update(y_upd, args), y_upd
+    def cond(c):
+        ok = running(solver, c)
+        return ok if stop is None else ok & (c.n < stop)
 
-    def advance(y, args, state, done):
-        y, state = solver.step(system, y, dict(args, active=~done), state)
+    def body(c):
+        y, args, state = solver.step(system, c.y, c.args, c.state)
         if "f0" in args and lazy:
             args = set_f0(args, state["F"])
         done, result = solver.terminate(system, y, args, state)
-        return y, args, state, done, result
+        return Carry(y, args, state, c.n + 1, done, result)
 
-    def trip(c):
-        # one step: the single solve's loop body (under a plain vmap, every member's)
-        y, args, state, n, done, result, y_upd = c
-        a, y_upd = update(y, {**fixed, **args}, done, y_upd)
-        y, a, state, done, result = advance(y, a, state, done)
-        if send:
-            _send_beacon(solver, system, y, a, state, n + 1)
-        return y, {k: v for k, v in a.items() if k not in fixed}, state, n + 1, done, result, y_upd
-    return trip
+    return jax.lax.while_loop(cond, body, c)
+
+
+def end(c: Carry):
+    """(y, args, state, result, n) of a finished carry: an unfinished loop is at its cap."""
+    return c.y, c.args, c.state, jnp.where(c.done, c.result, RESULTS.max_steps_reached), c.n
+
+
+def iterate(solver, system, y0, args):
+    """``solver`` from y0 in one `lax.while_loop`: (y, args, state, result, n)."""
+    return end(run(solver, system, start(solver, system, y0, args)))

@@ -12,17 +12,12 @@ pressure interval between the last equilibrium and the runaway, warm-starting ev
 from the last equilibrium, until the interval is narrower than ``rtol`` times its upper
 end.  A solve that stagnates (a Newton line search that finds no acceptable step: the
 load increment was too large for the solver, not a sign that no equilibrium exists), or
-fails in another way its solver declares (`cut_on`: the barrier Newton's iteration cap),
-is treated as a step too long: the ramp retries at the midpoint between the last
+fails in another way its solver declares (`cut_on`: the engine's step cap and
+stagnation), is treated as a step too long: the ramp retries at the midpoint between the last
 equilibrium and the stalled pressure, and after each equilibrium reached that way tries
 the stalled pressure again, from the nearer state (under a runaway, a pressure that
 has stalled twice bounds the bracket like a runaway, and is solved again only from an
-equilibrium within ``rtol`` of it).  Under a runaway a full solve is stopped, as a
-stall, after a few times as many steps as the slowest converged solve of the ramp took
-(`Ramp.stall_factor`, `_bracket_cap`): near the fold a solve converges in a few steps or
-drifts to any cap.
-(The soft Table 4 cell E1 = 0.05, E2 = 0.569 MPa stagnates from 3 straight to 80
-mmHg on the barrier path and converges through 10, 20 and 40 mmHg.)  The result is one of
+equilibrium within ``rtol`` of it).  The result is one of
 
 * ``converged``: the target pressure has an equilibrium (the usual case, one solve);
 * ``limit_point``: at least one solve converged, every solve above ``pressure`` ran away
@@ -32,10 +27,9 @@ mmHg on the barrier path and converges through 10, 20 and 40 mmHg.)  The result 
   reported as a limit point: with no converged solve the ramp ends as ``escaped``).
   Also where solves above a runaway's bracket stall (a failure in ``cut``) within
   ``rtol`` of the highest equilibrium: just past a fold the state drifts slowly away
-  through the ghost of the lost equilibrium, and a Newton solve there ends at its step
-  cap before it has moved far enough to count as a runaway (the soft neo-Hookean valve of
-  the paper's Table 5, E = 0.1 MPa at h = 1.5 mm: equilibria up to 20.1 mmHg, step caps
-  at 20.3-21.0, runaways from 22.2); ``p_stall`` is then the lowest stalled pressure;
+  through the ghost of the lost equilibrium, and a solve there ends at its step cap
+  before it has moved far enough to count as a runaway; ``p_stall`` is then the lowest
+  stalled pressure;
 * any other `RESULTS` name: a solve failed for another reason (step cap, crossing
   leaflets ...), or stagnated within ``rtol`` of the last equilibrium, or failed after the
   ramp's step budget was spent (`Ramp.max_steps`), which ends the ramp and is reported as
@@ -54,7 +48,7 @@ from ..errors import ParameterError
 from .base import RESULTS
 from .base import check_settings
 
-__all__ = ["Ramp", "RampResult", "ramp", "cut_on", "CUT_ON", "full_solver"]
+__all__ = ["Ramp", "RampResult", "ramp", "cut_on", "CUT_ON"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -68,23 +62,16 @@ class Ramp:
     rtol: float = 0.01
     max_solves: int = 30
     max_steps: int | None = None
-    #: under a runaway, a full solve (``confirm``) is stopped once it has taken
-    #: max(stall_floor, stall_factor x the most steps any converged solve of this ramp
-    #: took) without converging, and counts as a stall (`_bracket_cap`)
-    stall_factor: float = 3.0
-    stall_floor: int = 40
 
     def __post_init__(self):
         check_settings(self, dict(rtol="unit", max_solves="positive_count",
-                                  max_steps="positive_count", stall_factor="positive",
-                                  stall_floor="positive_count"), optional=("max_steps",))
+                                  max_steps="positive_count"), optional=("max_steps",))
 
     @classmethod
     def for_solver(cls, solver, solves_worth: int = 10):
         """The defaults, with a budget of ``solves_worth`` full solves of ``solver``'s
-        steps (its ``max_steps``) where it has a cap.  Without it a barrier ramp that could
-        not converge (Table 4 cell E1 = 0.106, E2 = 0.3 MPa) ran for more than 25 minutes:
-        30 solves of up to 200 Newton steps."""
+        steps (its ``max_steps``) where it has a cap, so that a ramp that cannot converge
+        ends in bounded time."""
         cap = getattr(solver, "max_steps", None)
         return cls(max_steps=None if cap is None else solves_worth * int(cap))
 
@@ -158,49 +145,20 @@ def cut_on(solver) -> tuple:
     return tuple(getattr(solver, "cut_on", CUT_ON))
 
 
-def full_solver(solver):
-    """``solver`` without its early stop, where it declares one (``without_patience``: the
-    barrier Newton's patience), else None: the solver of `ramp`'s ``confirm`` solves."""
-    without = getattr(solver, "without_patience", None)
-    return None if without is None else without()
-
-
 def ramp(solve: Callable, x0, p_target: float, p_start: float = 0.0,
-         settings: Ramp | None = None, cut: tuple = CUT_ON,
-         confirm: Callable | None = None, hint: float | None = None) -> RampResult:
+         settings: Ramp | None = None, cut: tuple = CUT_ON) -> RampResult:
     """Continuation in pressure from an equilibrium x0 at p_start to p_target.
 
     solve(p, x) -> `Solution`: the equilibrium at pressure p from the start x.  The first
-    solve is at p_target; where it converges or fails for a reason other than a runaway,
-    it is the only one.  Pressures in any unit, p_target > p_start >= 0.
-    cut: the `RESULTS` names of failures that cut the load step (`cut_on`).
-    confirm(p, x, max_steps) -> `Solution`: where ``solve`` stops early (a solver's
-    patience), the same solve without that stop, stopped at ``max_steps`` steps (None:
-    the solver's own cap; under a runaway, `_bracket_cap`).  Before the ramp ends on a
-    failure in ``cut`` (within ``rtol`` of the highest equilibrium, or with its step
-    budget spent) with no runaway seen, it solves once more from the highest equilibrium
-    straight to the target with ``confirm``, and goes on from that solve's outcome: a
-    solve stopped for not converging fast enough may have been a runaway that had not
-    yet gone far enough to count as one (without its drift guard, the barrier Newton's
-    patience stopped the runaways past the 0.1 MPa springs' limit point after 62-74
-    steps), or may have been about to converge.  Once a solve has run away every solve
-    is ``confirm``'s: the ramp then brackets a limit point, where Newton
-    converges slowly, and early stops near the fold placed the limit too low (those
-    springs at h = 0.88 mm: 35.4 mmHg against 37.3 without the early stop).
-    hint: a pressure at which another solver ran away on the same valve (the failed
-    path's lowest runaway, `jaxvalve.valve.closure.fall_back`).  After the first runaway
-    here the ramp tries it next, where it lies inside the bracket, instead of the
-    midpoint: a runaway there bounds the bracket as any other, an equilibrium there
-    raises its lower end.  Nothing is taken on trust: only this ramp's own solves place
-    the limit."""
+    solve is at p_target; where it converges or fails for a reason other than a runaway
+    or a failure in ``cut``, it is the only one.  Pressures in any unit, p_target >
+    p_start >= 0.  cut: the `RESULTS` names of failures that cut the load step
+    (`cut_on`)."""
     settings = Ramp() if settings is None else settings
-    slowest = 0       # the most steps a converged solve of this ramp took
     p_target, p_start = float(p_target), float(p_start)
     if not (np.isfinite(p_target) and np.isfinite(p_start) and p_target > p_start >= 0):
         raise ParameterError(f"ramp needs p_target > p_start >= 0; got p_start={p_start}, "
                              f"p_target={p_target}")
-    if hint is not None and not (np.isfinite(hint) and hint > 0):
-        raise ParameterError(f"ramp's hint must be a positive finite pressure; got {hint}")
     p_ok, x_ok, sol_ok = p_start, x0, None
     p_bad = None      # the lowest pressure at which a solve ran away
     sol_bad = None    # that solve
@@ -209,29 +167,14 @@ def ramp(solve: Callable, x0, p_target: float, p_start: float = 0.0,
     history, steps = [], 0
     sol_fail = None   # the last failed solve
     p = p_target
-    confirmed = confirm is None   # the one full solve to the target, done or not needed
-    to_target = False             # this solve is that one
     for _ in range(settings.max_solves):
-        # once a solve has run away, every solve is a full one: the ramp then brackets
-        # a limit point, where Newton converges slowly and an early stop near the fold
-        # would place the limit too low
-        full = confirm is not None and (to_target or p_bad is not None)
-        if full:
-            cap = None if p_bad is None else _bracket_cap(settings, slowest)
-            sol = confirm(p, x_ok, max_steps=cap)
-        else:
-            sol = solve(p, x_ok)
-        was_target, to_target = to_target, False
+        sol = solve(p, x_ok)
         status = sol.status
         n = int(sol.stats.steps)
         steps += n
         history.append((p, status, n, float(sol.stats.residual)))
-        if was_target and not sol.converged and status != RESULTS.escaped.name:
-            # the full solve to the target fails as well: that failure ends the ramp
-            return RampResult(status, p_ok, p_bad, x_ok, sol_ok, sol, tuple(history), steps)
         if sol.converged:
             p_ok, x_ok, sol_ok = p, sol.x, sol
-            slowest = max(slowest, n)
             if p >= p_target:
                 return RampResult("converged", p, p_bad, x_ok, sol_ok, None, tuple(history),
                                   steps)
@@ -239,9 +182,7 @@ def ramp(solve: Callable, x0, p_target: float, p_start: float = 0.0,
                 p_stall = None
             if (p_bad is not None and (p_stall is None or p_stall >= p_bad)
                     and p_bad - p_ok <= settings.rtol * p_bad):
-                # the bracket under the runaway closed from below: every solve under it
-                # converged (without this the midpoints crept up to the runaway, each
-                # converging, until the ramp ran out of solves and reported the runaway)
+                # the bracket under the runaway closed from below
                 return RampResult("limit_point", p_ok, p_bad, x_ok, sol_ok, sol_bad,
                                   tuple(history), steps)
         elif status == RESULTS.escaped.name:
@@ -258,47 +199,19 @@ def ramp(solve: Callable, x0, p_target: float, p_start: float = 0.0,
             # stalled within rtol of an equilibrium, under a runaway: past the fold
             return RampResult("limit_point", p_ok, p_bad, x_ok, sol_ok, sol,
                               tuple(history), steps, p_stall=p)
-        elif status in cut and not confirmed:
-            confirmed = to_target = True
         else:
             return RampResult(status, p_ok, p_bad, x_ok, sol_ok, sol, tuple(history), steps)
         if not sol.converged and p_bad is None and _spent(settings, steps):  # budget spent
-            if status in cut and not confirmed:
-                confirmed = to_target = True
-            else:
-                return RampResult(status, p_ok, p_bad, x_ok, sol_ok, sol, tuple(history),
-                                  steps)
+            return RampResult(status, p_ok, p_bad, x_ok, sol_ok, sol, tuple(history), steps)
         if not sol.converged:
             sol_fail = sol
-        # the ramp would end on a failure that may be the early stop's (`confirm`): one
-        # solve from the highest equilibrium straight to the target, without it
-        p = p_target if to_target else _next_pressure(p_ok, p_bad, p_stall, p_target,
-                                                      sol.converged, settings.rtol,
-                                                      n_stall)
-        if (hint is not None and status == RESULTS.escaped.name and p_stall is None
-                and p_ok < hint < p_bad):
-            p, hint = float(hint), None      # the other solver's runaway, once
+        p = _next_pressure(p_ok, p_bad, p_stall, p_target, sol.converged, settings.rtol,
+                           n_stall)
     # out of solves (or a runaway down to the start): the last solve's failure, a runaway
     # or a stagnation (a converged solve at the target returns above); out of solves just
     # after an equilibrium (which a failure must have preceded): the last failure
     last = sol_fail if sol.converged else sol
     return RampResult(last.status, p_ok, p_bad, x_ok, sol_ok, last, tuple(history), steps)
-
-
-def _bracket_cap(settings: Ramp, slowest: int) -> int | None:
-    """The step cap of a full solve under a runaway: ``stall_factor`` times the most steps
-    a converged solve of this ramp took, at least ``stall_floor`` (None before any solve
-    converged: the solver's own cap).  Such a solve starts from an equilibrium near the
-    fold, where Newton converges in a few steps or not at all: past the fold the state
-    drifts slowly through the ghost of the lost equilibrium and a solve ran to the
-    solver's 200-step cap (the soft neo-Hookean valve of the stress tests, template (a),
-    E = 0.05 MPa, h = 2 mm: converged solves in the bracket 5-17 steps, three stalls at
-    200 steps each, 600 of the ramp's 921).  A solve stopped here is a stall (the cap is
-    in ``cut``) and bounds the bracket as one; a runaway stopped before it escaped is
-    such a stall too."""
-    if slowest == 0:
-        return None
-    return max(settings.stall_floor, int(np.ceil(settings.stall_factor * slowest)))
 
 
 def _spent(settings: Ramp, steps: int) -> bool:

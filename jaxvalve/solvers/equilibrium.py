@@ -1,129 +1,129 @@
-"""The public equilibrium solve, with its implicit (adjoint) derivative.
+"""The equilibrium solve: one entry for every membrane, with or without contact.
 
-``solve(problem, params, x0)`` finds x with residual(x) = 0 on the free nodes, starting
-from x0 (N, 3) mm; fixed nodes stay at x0.  Reverse-mode gradients of anything computed
-from the returned x, with respect to ``params`` (material, H, P, ref, contact) and to the
-fixed positions in x0, come from the implicit function theorem: one adjoint solve
-K^T mu = g with the transposed stiffness, never from unrolling the iterations.
+``solve(problem, params, x0, solver)`` finds x with residual(x) = 0 on the free nodes,
+starting from x0 (N, 3) mm; fixed nodes stay at x0.
+
+* Membranes without contact: `NewtonKrylov` (default), `FIRE` or `FixedPoint`.
+* Barrier contact (`jaxvalve.contact.BarrierContact`, the valve's law): the `Engine`,
+  FIRE in one compiled loop on the in-jit pair lists (`jaxvalve.contact.pairs`), then,
+  where FIRE stagnates above the tolerance, Newton on the exact tangent from FIRE's best
+  state (`jaxvalve.solvers.finish`).
+* The paper's law (`PaperContact`): `FixedPoint`, the paper's Algorithm 2.1.
+
+A solve called with concrete values runs its loop from the host in stretches of whole
+multiples of `progress.BEACON_EVERY` steps and reports its progress after each
+(`jaxvalve.progress.beacon`); inside a trace (jit, vmap) the loop is one program.  Pair lists that overflow their capacities are
+grown and the solve is run again.  Reverse-mode derivatives of a converged state come from
+the implicit function theorem (`implicit_state`, `jaxvalve.solvers.adjoint`), never from
+unrolling the solver.
 """
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import functools
 import logging
 import time
+import types
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import adjoint
-from ..mechanics import assembly
-from ..contact.soft_pairs import (SoftPairs, build_soft_pairs, default_soft_capacity,
-                                 stale_soft_pairs)
-from ..contact.soft_pairs import refresh as refresh_soft
-from ..contact.neighbours import whole_lists as one_prefix
-from ..quick_jit import quick_jit
-from ..errors import ConvergenceError, NeighbourListOverflow, ParameterError
-from ..geometry.mesh import edge_lengths_np
-from ..mechanics.problem import Params, Problem, validate_params
-from .base import (RESULTS, EquilibriumSystem, Solution, Stats, iterate, loop_chunk, loop_end,
-                   loop_residual, loop_running, loop_start)
 from .. import progress
+from ..contact import pairs as pair_lists
+from ..contact.barrier import BarrierContact, collision_weights, forces as barrier_forces
+from ..contact.paper import PaperContact, vicinity_threshold
+from ..errors import ConvergenceError, ParameterError
+from ..mechanics import assembly
+from ..mechanics.problem import Params, Problem, validate_params
+from . import adjoint
+from .base import (RESULTS, EquilibriumSystem, Solution, Stats, end, escape_distance,
+                   relative_residual, run, running, start)
+from .fire import FIRE
 from .fixed_point import FixedPoint
 from .newton import NewtonKrylov
-from .base import escape_distance, relative_residual, set_f0
-from .. import contact as _contact
 
-_log = logging.getLogger("jaxvalve")
+__all__ = ["Engine", "solve", "finish", "fire_batch", "make_system", "Contact", "SKIN",
+           "MARGIN"]
 
-DEFAULT_SKIN = 1.0  # mm: pair lists are rebuilt once a node has moved skin / 2
-
-
-def mesh_skin(triangles, ref) -> float:
-    """Verlet skin (mm) for a mesh: its median edge length in the reference ``ref`` (N, 2|3)
-    mm, rounded to 0.01 mm and at most `DEFAULT_SKIN`.  With the skin following the mesh
-    size, a node's candidates (within g0 + skin) stay nearly as many triangles as the mesh
-    is refined (they grow only through the fixed gap g0), so the broad phase is about
-    linear in the triangles M; with a fixed 1 mm skin it grows like M^1.2-1.4
-    (`benchmarks/skips.py`).  Rounded, so that a template change of one
-    mesh does not change this static value (one compiled solve)."""
-    e = edge_lengths_np(ref, triangles)
-    return float(min(DEFAULT_SKIN, max(0.01, round(float(np.median(e)), 2))))
+#: the pair lists' candidate skin and active margin (mm, `jaxvalve.contact.pairs`): the
+#: candidates are rebuilt about every (SKIN - MARGIN) / 2 of node travel, the active
+#: pairs re-selected every MARGIN / 2
+SKIN = 1.0
+MARGIN = 0.2
 
 
-def contact_cutoff(contact, x, triangles, skin=DEFAULT_SKIN):
-    """Broad-phase radius (mm): interaction range of the law plus the skin."""
-    if hasattr(contact, "energy"):
-        return float(contact.gap) + skin
-    return 1.25 * float(_contact.vicinity_threshold(x, triangles)) + skin
+@dataclasses.dataclass(frozen=True)
+class Engine:
+    """The closure engine's settings: FIRE to a relative residual ``rtol`` (at most
+    ``max_steps`` steps, stagnation after ``patience`` steps without halving its
+    residual), then, where FIRE stagnated or reached its cap with a best residual below
+    ``finish_below`` (near an equilibrium, where Newton converges), Newton on the exact
+    tangent from its best state (`jaxvalve.solvers.finish`, at most ``newton_steps``
+    steps)."""
+
+    rtol: float = 1e-4
+    max_steps: int = 20_000
+    patience: int = 300
+    dt_max: float = 1.5
+    newton_steps: int = 40
+    finish_below: float = 0.05
+    #: failures after which continuation in pressure cuts the load step
+    #: (`jaxvalve.solvers.continuation.cut_on`): a finish that stalled, or a state with a
+    #: collapsed triangle, may pass from a nearer equilibrium
+    cut_on = ("stagnation", "max_steps_reached", "inverted_triangles")
+
+    def fire(self) -> FIRE:
+        return FIRE(rtol=self.rtol, max_steps=self.max_steps, patience=self.patience,
+                    dt_max=self.dt_max)
 
 
-def init_pairs(contact, problem, x, skin=DEFAULT_SKIN, capacity=None, soft_capacity=None):
-    """Contact pair list for state x, grown outside jit until nothing overflows: the
-    Verlet list, and for a soft-min law the pruned list over it (`soft_pairs`)."""
-    cutoff = contact_cutoff(contact, jnp.asarray(x), problem.triangles, skin)
-    base = _contact.build_neighbours_checked(x, problem.triangles, problem.body, cutoff,
-                                             capacity=capacity)
-    if not getattr(contact, "soft_min", False):
-        return base
-    cap = soft_capacity or default_soft_capacity(problem.n_nodes)
-    for _ in range(12):
-        pairs = _build_soft(base, jnp.asarray(x), problem.triangles, contact, cap)
-        if not bool(pairs.soft_overflow):
-            return pairs
-        cap = max(2 * cap, int(pairs.soft_count))
-    raise NeighbourListOverflow(f"the soft-min pair list needs {int(pairs.soft_count)} "
-                                "slots; it could not be grown")
+@dataclasses.dataclass(frozen=True)
+class Contact:
+    """What the solve's system knows of the contact law: ``kind`` ("barrier", "paper" or
+    None) and, for the pair lists, their static capacities."""
+
+    kind: str | None = None
+    caps: pair_lists.Capacities | None = None
 
 
-def stale_pairs(contact, problem, x, skin=DEFAULT_SKIN):
-    """The empty pair list(s) of `init_pairs`'s default capacities, to be built by the
-    solve's first update (`neighbours.stale_list`)."""
-    cutoff = contact_cutoff(contact, jnp.asarray(x), problem.triangles, skin)
-    base = _contact.stale_list(problem.n_nodes, problem.triangles, problem.body, cutoff,
-                               dtype=jnp.asarray(x).dtype)
-    if not getattr(contact, "soft_min", False):
-        return base
-    return stale_soft_pairs(base, default_soft_capacity(problem.n_nodes))
+def _kind(params: Params):
+    c = params.contact
+    if c is None:
+        return None
+    if isinstance(c, BarrierContact):
+        return "barrier"
+    if isinstance(c, PaperContact):
+        return "paper"
+    raise ParameterError(f"params.contact must be None, BarrierContact or PaperContact; got "
+                         f"{type(c).__name__}")
 
 
-@quick_jit(static_argnums=(4,))
-def _build_soft(base, x, triangles, contact, capacity):
-    """The pruned pair list at a solve's start, compiled for compile time (it runs once
-    per solve): on the whole candidate list, with `quick_jit`'s CPU emitters."""
-    with one_prefix():
-        return build_soft_pairs(base, x, triangles, contact, capacity)
+def make_system(problem: Problem, contact: Contact) -> EquilibriumSystem:
+    """The functions a solver needs, with ``args`` = dict(params, ref, f0, x_start,
+    escape) and, with contact, the pair ``lists``, their ``topo`` and, for the barrier,
+    the collision ``weights`` (for the paper's law its step ``delta``)."""
+    free = problem.free
 
-
-@jax.jit
-def _refresh(pairs, x, triangles, body, skin, contact):
-    return refresh_soft(pairs, x, triangles, body, skin, contact)
-
-
-def update_pairs(nbrs, x, problem, skin, contact):
-    """Bring a pair list (either level) up to date at x (usable inside jit)."""
-    if isinstance(nbrs, SoftPairs):
-        return refresh_soft(nbrs, x, problem.triangles, problem.body, skin, contact)
-    return _contact.update(nbrs, x, problem.triangles, problem.body, skin)
-
-
-def make_system(problem: Problem, params: Params) -> EquilibriumSystem:
-    """The functions a solver needs, with ``args = dict(params, ref, nbrs, delta, f0)``."""
-    contact = params.contact
+    def parts(y, a):
+        p = a["params"]
+        F, s = assembly.membrane_force(y, problem, p, a["ref"])
+        dmin = jnp.full(y.shape[:1], jnp.inf, y.dtype)
+        stiff = jnp.zeros(y.shape[:1], y.dtype)
+        if contact.kind == "barrier":
+            _, g, dmin, stiff = barrier_forces(p.contact, y, a["lists"].act, a["weights"])
+            F = F - g * free[:, None]
+        elif contact.kind == "paper":
+            F = F + p.contact.force(y, F, a["delta"], a["lists"].act, a["topo"].node_body,
+                                    problem.triangles) * free[:, None]
+        return F, jnp.where(p.pressure != 0, s, a["f0"]), dmin, stiff
 
     def force(y, a):
-        return assembly.residual(y, problem, a["params"], a["ref"], a["nbrs"], a["delta"])
+        return parts(y, a)[0]
 
     def scale(y, a):
         p = a["params"]
         return jnp.where(p.pressure != 0, assembly.pressure_scale(y, problem, p), a["f0"])
-
-    def force_scale(y, a):
-        p = a["params"]
-        F, s = assembly.residual_and_scale(y, problem, p, a["ref"], a["nbrs"], a["delta"])
-        return F, jnp.where(p.pressure != 0, s, set_f0(a, F)["f0"])
 
     def admissible(y, a):
         return assembly.stretch_admissible(y, problem, a["params"], a["ref"])
@@ -135,87 +135,37 @@ def make_system(problem: Problem, params: Params) -> EquilibriumSystem:
         return assembly.block_diagonal(y, problem, a["params"], a["ref"])
 
     def update(y, a):
-        if contact is None:
+        if contact.kind is None:
             return a
-        return dict(a, nbrs=update_pairs(a["nbrs"], y, problem, a["skin"],
-                                         a["params"].contact))
+        return dict(a, lists=pair_lists.update(a["lists"], a["topo"], a["params"].ref, y,
+                                               contact.caps))
 
     def overflow(a):
-        if contact is None:
+        if contact.kind is None:
             return jnp.asarray(False)
-        return a["nbrs"].overflow
+        return pair_lists.overflow_flag(a["lists"], contact.caps)
+
+    def step_cap(y, a):
+        if contact.kind is None:
+            return jnp.asarray(jnp.inf, y.dtype)
+        return a["lists"].step_cap(y)
 
     def laplacian(v, a):
         return assembly.laplacian_apply(v, problem.triangles, a["ref"].cot)
 
-    return EquilibriumSystem(force, scale, admissible, bound, block_diag, update, overflow,
-                             laplacian, problem.free, force_scale)
+    return EquilibriumSystem(force, scale, parts, admissible, bound, block_diag, update,
+                             overflow, step_cap, laplacian, free)
 
 
-def _make_args(problem, params, x0, nbrs, solver, skin):
-    ref = assembly.prepare(problem, params)
-    has_contact = params.contact is not None
-    a = dict(params=params, ref=ref, nbrs=nbrs, delta=jnp.asarray(0.0, x0.dtype),
-             f0=jnp.asarray(1.0, x0.dtype), skin=jnp.asarray(skin, x0.dtype),
-             max_move=jnp.asarray(0.5 * skin if has_contact else jnp.inf, x0.dtype),
-             x_start=x0, escape=escape_distance(x0))
-    system = make_system(problem, params)
-    if params.contact is not None and hasattr(params.contact, "force"):
-        # the paper's law needs the fixed-point step delta (tentative positions)
-        d = (solver.delta if isinstance(solver, FixedPoint) and solver.delta is not None
-             else 1.0 / jnp.max(jnp.where(problem.free, system.bound(x0, a), 0.0)))
-        a = dict(a, delta=jnp.asarray(d, x0.dtype))
-    # f0 (the residual scale at P = 0) is set from the first solver's initial force
-    # (`iterate`), so the force is not traced once more here
-    a = dict(a, f0=jnp.asarray(-1.0, x0.dtype))
-    return system, a
-
-
-def _run(solver, problem, params, x0, nbrs, skin):
-    """The solve as one program: (y, result, `Stats`, pair list, delta)."""
-    system, args = _make_args(problem, params, x0, nbrs, solver, skin)
-    totals = (jnp.asarray(0),) * 3
-    y = x0
-    for warm in getattr(solver, "warm_start", None) or ():
-        y, args, st, _, n = iterate(warm, system, y, args)
-        args, totals = _warm_done(warm, system, y, args, st, n, totals)
-    y, args, st, result, n = iterate(solver, system, y, args)
-    return _finish(solver, system, y, args, st, result, n, *totals)
-
-
-def _warm_done(warm, system, y, args, st, n, totals):
-    """After a warm start's loop: the args brought up to date at y, and the totals
-    (steps, force evaluations, Hessian-vector products) with its own added."""
-    s = warm.stats(st)
-    return system.update(y, args), (totals[0] + n, totals[1] + s["force_evals"],
-                                    totals[2] + s["hvps"])
-
-
-def _finish(solver, system, y, args, st, result, n, steps, evals, hvps):
-    """The solve's output (y, result, `Stats`, pair list, delta) after its last loop;
-    steps, evals, hvps: those of the warm starts before it."""
-    s = solver.stats(st)
-    # every solver keeps the force at its current state: no extra traced force evaluation
-    res = relative_residual(system, y, args, st["F"] if "F" in st else None)
-    if getattr(solver, "lazy_force", False):   # no step ran: F(x0) was never evaluated
-        res = jnp.where(n > 0, res, jnp.inf)
-    stats = Stats(steps=steps + n, force_evals=evals + s["force_evals"], hvps=hvps + s["hvps"],
-                  residual=res)
-    return y, result, stats, args["nbrs"], args["delta"]
-
-
-#: Solver settings that reach the compiled solve as traced values, not as part of the
-#: static solver: solves that differ only in their tolerance or step cap (a scene's
-#: rtol, the optimiser's trial cap, the stress suite's cap) run one compiled program.
-#: In the test suite the same FIRE loop was otherwise compiled once per setting
-#: (1.4-24 s a compile).  The other settings shape the program (FIRE's patience traces its
-#: residual; FixedPoint's delta) and stay static.
+# ------------------------------------------------------------------ compiled pieces
+#: Solver settings passed to the compiled loop as traced values, so that solves that
+#: differ only in them (a scene's rtol, the optimiser's trial cap) run one program.
 TRACED_SETTINGS = ("rtol", "max_steps")
 
 
 def _fill(solver, settings):
-    """``solver`` with the fields in ``settings`` replaced, unvalidated: set to None for
-    the static key of the compiled solve, or to tracers inside it."""
+    """``solver`` with the fields in ``settings`` replaced, unvalidated (set to None for
+    the static key of the compiled solve, or to tracers inside it)."""
     if not settings:
         return solver
     out = object.__new__(type(solver))
@@ -224,9 +174,8 @@ def _fill(solver, settings):
     return out
 
 
-def _setting_args(solver, dtype):
-    """(``solver`` with its `TRACED_SETTINGS` set to None, their values as arrays: float
-    settings in the state's dtype, counts int32)."""
+def _split(solver, dtype):
+    """(``solver`` with its `TRACED_SETTINGS` set to None, their values as arrays)."""
     vals = {k: getattr(solver, k) for k in TRACED_SETTINGS
             if isinstance(getattr(solver, k, None), (int, float, np.number))
             and not isinstance(getattr(solver, k), bool)}
@@ -235,320 +184,265 @@ def _setting_args(solver, dtype):
             else np.asarray(v, dtype)) for k, v in vals.items()}
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(0, 5))
-def _equilibrium(blank, problem, params, x0, nbrs, skin, settings):
-    return _run(_fill(blank, settings), problem, params, x0, nbrs, skin)
+def _phases(solver):
+    """The loops of a solve: a solver's warm starts, then the solver."""
+    return tuple(getattr(solver, "warm_start", None) or ()) + (solver,)
 
 
-def _eq_fwd(blank, problem, params, x0, nbrs, skin, settings):
-    out = _equilibrium(blank, problem, params, x0, nbrs, skin, settings)
-    y, _, _, nb, delta = out
-    return out, (problem, params, y, nb, delta, settings)
-
-
-def _zeros_like(t):
-    return jax.tree_util.tree_map(
-        lambda a: (None if not jnp.issubdtype(jnp.asarray(a).dtype, jnp.inexact)
-                   else jnp.zeros_like(a)), t)
-
-
-def _eq_bwd(blank, skin, res, cts):
-    problem, params, y, nb, delta, settings = res
-    gp, gx0 = adjoint.cotangents(problem, params, y, nb, delta, cts[0])
-    return (_zeros_like(problem), gp, gx0, _zeros_like(nb), _zeros_like(settings))
-
-
-_equilibrium.defvjp(_eq_fwd, _eq_bwd)
-
-
-def _solve_jit(solver, problem, params, x0, nbrs, skin, whole_lists=False):
-    """The compiled solve: ``solver``'s `TRACED_SETTINGS` as arguments, the rest static.
-    Called with concrete values it runs from the host in stretches (`_solve_stretches`);
-    inside a trace (jit, grad, vmap) it is one program (`_solve_compiled`)."""
-    blank, settings = _setting_args(solver, jnp.asarray(x0).dtype)
-    if any(isinstance(v, jax.core.Tracer)
-           for v in jax.tree_util.tree_leaves((problem, params, x0, nbrs))):
-        return _solve_compiled(blank, problem, params, x0, nbrs, skin, whole_lists, settings)
-    return _solve_stretches(blank, problem, params, x0, nbrs, skin, whole_lists, settings)
-
-
-def _solve_stretches(blank, problem, params, x0, nbrs, skin, whole_lists, settings):
-    """`_run` driven from the host: each solver's loop (the warm starts', then the
-    solver's) runs in compiled stretches of whole multiples of `progress.BEACON_EVERY`
-    steps (`progress.next_stretch`: one at first, then grown until a stretch lasts about
-    `progress.STRETCH_S`), and the host sends the beacon after each.  Where a stretch ends
-    does not change the solve: the loop's carry passes through unchanged.  The same loop
-    body as `_solve_compiled`'s, but no host callback in any program, so that JAX's
-    persistent compilation cache keeps them (it stores no program that holds one: a warm
-    `jaxvalve simulate` compiled its solve anew, 16.8 s of compilation against 5.8 s
-    without the callback)."""
-    n_phases = len(getattr(blank, "warm_start", None) or ()) + 1
-    args = _stretch_args(blank, problem, params, x0, nbrs, skin, whole_lists, settings)
-    y, totals = x0, (jnp.asarray(0),) * 3
-    every = progress.BEACON_EVERY
-    for i in range(n_phases):
-        name = type(_phase(blank, settings, i)).__name__
-        c, running = _stretch_start(blank, i, problem, params, skin, whole_lists, settings,
-                                    y, args)
-        n, k = int(c[3]), 1
-        while bool(running):
-            t = time.perf_counter()
-            c, running, res = _stretch(blank, i, problem, params, skin, whole_lists,
-                                       settings, c, jnp.asarray((n // every + k) * every))
-            n = int(c[3])
-            if n % every == 0:
-                progress.beacon(n, res, name)
-            k = progress.next_stretch(k, time.perf_counter() - t)
-        out = _stretch_end(blank, i, problem, params, skin, whole_lists, settings, c, totals)
-        if i + 1 < n_phases:
-            y, args, totals = out
-    return out
-
-
-def _phase(blank, settings, i):
-    """The solver of loop ``i`` of a solve: the warm starts in turn, then the solver."""
-    warm = tuple(getattr(blank, "warm_start", None) or ())
-    return warm[i] if i < len(warm) else _fill(blank, settings)
-
-
-def _lists(whole_lists):
-    return one_prefix() if whole_lists else contextlib.nullcontext()
-
-
-@functools.partial(jax.jit, static_argnums=(0, 5, 6))
-def _stretch_args(blank, problem, params, x0, nbrs, skin, whole_lists, settings):
-    with _lists(whole_lists):
-        return _make_args(problem, params, x0, nbrs, _fill(blank, settings), skin)[1]
-
-
-@functools.partial(jax.jit, static_argnums=(0, 1, 4, 5))
-def _stretch_start(blank, i, problem, params, skin, whole_lists, settings, y, args):
-    solver = _phase(blank, settings, i)
-    with _lists(whole_lists):
-        c = loop_start(solver, make_system(problem, params), y, args)
-    return c, loop_running(solver, c)
-
-
-@functools.partial(jax.jit, static_argnums=(0, 1, 4, 5))
-def _stretch(blank, i, problem, params, skin, whole_lists, settings, c, stop):
-    solver = _phase(blank, settings, i)
-    system = make_system(problem, params)
-    with _lists(whole_lists):
-        c = loop_chunk(solver, system, c, stop)
-        return c, loop_running(solver, c), loop_residual(system, c)
-
-
-@functools.partial(jax.jit, static_argnums=(0, 1, 4, 5))
-def _stretch_end(blank, i, problem, params, skin, whole_lists, settings, c, totals):
-    """A warm start's (y, args, totals) for the next loop, or the solve's output; totals:
-    the steps, force evaluations and Hessian-vector products of the loops before
-    (`_warm_done`)."""
-    solver = _phase(blank, settings, i)
-    system = make_system(problem, params)
-    y, args, st, result, n = loop_end(c)
-    with _lists(whole_lists):
-        if i < len(getattr(blank, "warm_start", None) or ()):
-            return (y, *_warm_done(solver, system, y, args, st, n, totals))
-        return _finish(solver, system, y, args, st, result, n, *totals)
-
-
-@functools.partial(jax.jit, static_argnums=(0, 5, 6))
-def _solve_compiled(blank, problem, params, x0, nbrs, skin, whole_lists, settings):
-    with one_prefix() if whole_lists else contextlib.nullcontext():
-        return _equilibrium(blank, problem, params, x0, nbrs, skin, settings)
-
-
-@quick_jit(static_argnums=(6,))
-def _recheck(problem, params, x0, y, nbrs, delta, at_rest):
-    """(relative residual, state sound) of a solve's result y (N, 3) mm, from a program of
-    its own: the force, the residual scale (||F_pressure||, or ||F(x0)|| at rest, P = 0)
-    and the stretch and finiteness checks evaluated afresh, none of them read from the
-    solver's loop.  The program runs once per solve, at one state, so it is compiled for
-    compile time: traced on the whole pair lists (`contact.neighbours.whole_lists`; the
-    solver's switch over list prefixes would only add branches) and with `quick_jit`'s
-    CPU emitters (`python benchmarks/recheck_compile.py`)."""
+def _args(problem, params, x0, extra):
     ref = assembly.prepare(problem, params)
-    with one_prefix():
-        F = assembly.residual(y, problem, params, ref, nbrs, delta)
-        if at_rest:
-            scale = jnp.linalg.norm(assembly.residual(x0, problem, params, ref, nbrs, delta))
-    if not at_rest:
-        scale = assembly.pressure_scale(y, problem, params)
-    res = jnp.linalg.norm(F) / jnp.where(scale > 0, scale, 1.0)
-    sound = (assembly.stretch_admissible(y, problem, params, ref)
-             & jnp.all(jnp.isfinite(y)) & jnp.all(jnp.isfinite(F)))
-    return res, sound
+    a = dict(params=params, ref=ref, f0=jnp.asarray(-1.0, x0.dtype), x_start=x0,
+             escape=escape_distance(x0))
+    return {**a, **extra}
 
 
-def recheck(solver, problem, params, x0, y, nbrs, delta, residual):
-    """None when the converged result y agrees with an independent evaluation, else the
-    independent relative residual (inf where the state is not sound).  Agreement: the
-    state is finite and inside the stretch limit, and the fresh residual is below twice
-    the solver's stopping threshold ``rtol`` (a solver that stops on its step length, the
-    paper's fixed point, has none: then within twice the loop's own residual), or below
-    1000 rounding units."""
-    res, sound = _recheck(problem, params, x0, y, nbrs, delta, float(params.pressure) == 0)
-    res = float(res)
-    eps = float(jnp.finfo(y.dtype).eps)
-    rtol = getattr(solver, "rtol", None)
-    tol = 2.0 * max(float(residual) if rtol is None else float(rtol), 500 * eps)
-    if bool(sound) and res <= tol:
-        return None
-    return res if bool(sound) else float("inf")
+@functools.partial(jax.jit, static_argnums=(0, 1, 2))
+def _start(blank, i, contact, problem, settings, y, args):
+    """The carry of loop ``i`` at y, for a solver that evaluates the force there first
+    (FIRE builds its own, on the host: `base.start`)."""
+    phase = _phases(_fill(blank, settings))[i]
+    return start(phase, make_system(problem, contact), y, args)
 
 
-@contextlib.contextmanager
-def _fresh_compilation():
-    """Drop every compiled program held in memory and bypass the persistent compilation
-    cache, so that what runs in this block is compiled anew."""
-    jax.clear_caches()
-    on = jax.config.jax_enable_compilation_cache
-    jax.config.update("jax_enable_compilation_cache", False)
-    try:
-        yield
-    finally:
-        jax.config.update("jax_enable_compilation_cache", on)
+@functools.partial(jax.jit, static_argnums=(0, 1, 2))
+def _stretch(blank, i, contact, problem, settings, c, stop):
+    """Loop ``i`` from carry c to at most ``stop`` steps: (carry, still running)."""
+    phase = _phases(_fill(blank, settings))[i]
+    c = run(phase, make_system(problem, contact), c, stop)
+    return c, running(phase, c)
 
 
-def _raise_host(code, residual, steps):
-    code = int(code)
+@functools.partial(jax.jit, static_argnums=(0, 1, 2))
+def _residual(blank, i, contact, problem, settings, c):
+    """The relative residual at a loop's end, for a solver that does not keep it."""
+    return relative_residual(make_system(problem, contact), c.y, c.args, c.state.get("F"))
+
+
+def _outcome(phase, c, residual):
+    """(y, args, result, steps, residual, best state, its residual) of a finished carry."""
+    y, args, st, result, n = end(c)
+    return y, args, result, n, residual, st.get("best_y", y), st.get("rmin", residual)
+
+
+def _run_traced(blank, contact, problem, settings, y, args):
+    """Every loop of the solve in one trace (inside jit or vmap)."""
+    solver = _fill(blank, settings)
+    system = make_system(problem, contact)
+    steps = jnp.asarray(0, jnp.int32)
+    for phase in _phases(solver):
+        c = run(phase, system, start(phase, system, y, args))
+        res = (c.state["r"] if "r" in c.state
+               else relative_residual(system, c.y, c.args, c.state.get("F")))
+        y, args, result, n, res, best, rbest = _outcome(phase, c, res)
+        steps = steps + n
+    return y, args, result, steps, res, best, rbest
+
+
+def _run_host(blank, contact, problem, settings, y, args, name):
+    """Every loop of the solve, driven from the host in stretches of whole multiples of
+    `progress.BEACON_EVERY` steps sized to their time (`progress.next_stretch`), a beacon
+    after each: one compiled program a loop (FIRE's carry is made on the host)."""
+    steps = 0
+    for i, phase in enumerate(_phases(_fill(blank, settings))):
+        if getattr(phase, "lazy_force", False):
+            c = start(phase, None, y, args)
+        else:
+            c = _start(blank, i, contact, problem, settings, y, args)
+        go, n, k = bool(running(phase, c)), 0, 1
+        while go:
+            n += k * progress.BEACON_EVERY
+            t0 = time.perf_counter()
+            c, go = _stretch(blank, i, contact, problem, settings, c, jnp.int32(n))
+            go = bool(go)
+            k = progress.next_stretch(k, time.perf_counter() - t0)
+            r = c.state["r"] if "r" in c.state else jnp.nan
+            progress.beacon(steps + int(c.n), r, type(phase).__name__)
+        res = (c.state["r"] if "r" in c.state
+               else _residual(blank, i, contact, problem, settings, c))
+        y, args, result, k, res, best, rbest = _outcome(phase, c, res)
+        steps += int(k)
+    return y, args, result, jnp.asarray(steps), res, best, rbest
+
+
+_log = logging.getLogger("jaxvalve")
+
+
+@jax.jit
+def _independent_residual(x, problem, params, pairs):
+    F = adjoint.residual(x, problem, params, pairs)
+    return jnp.linalg.norm(F) / assembly.pressure_scale(x, problem, params)
+
+
+def _recheck(problem, params, sol, rtol):
+    """``sol`` checked by a program of its own: the relative residual of its state by
+    autodiff of the energies (`adjoint.residual`), on pair lists built afresh at it.
+    Where it exceeds twice ``rtol`` the result is `RESULTS.inconsistent`, with that
+    residual: a compiled loop that claims an equilibrium it does not have is never
+    reported as converged.  Loads at P = 0 (relative to the first force) and the
+    paper's law are not checked."""
+    kind = _kind(params)
+    if rtol is None or kind == "paper" or float(params.pressure) == 0.0:
+        return sol
+    pairs = None
+    if kind == "barrier":
+        lists, _ = pair_lists.allocate(sol.topo, params.ref, sol.x, params.contact.dhat, 0.0,
+                                       0.0, caps=sol.caps)
+        pairs = adjoint.fixed_pairs(types.SimpleNamespace(lists=lists, topo=sol.topo),
+                                    compact=False)
+    r = float(_independent_residual(jnp.asarray(sol.x), problem, params, pairs))
+    if r <= 2.0 * float(rtol):
+        return sol
+    _log.warning("the solve reported convergence at a relative residual of %.3e, but an "
+                 "independent evaluation of its state gives %.3e: reported as inconsistent",
+                 float(sol.stats.residual), r)
+    return dataclasses.replace(sol, result=jnp.asarray(int(RESULTS.inconsistent)),
+                               stats=dataclasses.replace(sol.stats, residual=jnp.asarray(r)))
+
+
+def _raise(result, residual, steps):
+    code = int(result)
     if code != RESULTS.successful:
         r = RESULTS(code)
         raise ConvergenceError(f"equilibrium solve failed: {r.message} ({r.name}); relative "
                                f"residual {float(residual):.3e} after {int(steps)} steps")
 
 
-def solve(problem: Problem, params: Params, x0, solver=None, *, throw: bool = True,
-          nbrs=None, skin: float = DEFAULT_SKIN, whole_lists: bool = False) -> Solution:
-    """Equilibrium of ``problem`` under ``params`` from the start x0 (N, 3) mm.
-
-    solver: `NewtonKrylov()` (default), `FIRE()` or `FixedPoint()` (Algorithm 2.1).
-    throw: raise `ConvergenceError` (with the residual) unless the solve converged; with
-    throw=False the caller must inspect ``solution.result``.
-    nbrs, skin: contact pair list (built here at x0 when None, else brought up to date
-    at x0) and its skin (mm; a valve's closures pass `Valve.skin`).  A pair list
-    that overflows inside the solve is rebuilt here at a larger capacity and the solve
-    is repeated.  Differentiable in reverse
-    mode with respect to params and the fixed positions in x0 (implicit adjoint).
-    whole_lists: evaluate contact on the whole pair lists (`contact.whole_lists`) instead
-    of the shortest of up to three prefixes that holds the pairs in use.  Same values;
-    about 6 s less compilation at h = 0.88 mm, as fast where most of the lists are in
-    use (closures at 80 mmHg), slower where few pairs are live (at 3 mmHg: 1.2-1.5x).
-    """
-    solver = NewtonKrylov() if solver is None else solver
-    if not isinstance(whole_lists, bool):
-        raise ParameterError(f"whole_lists must be True or False; got {whole_lists!r}")
+def _check_inputs(problem, params, x0):
     x0 = jnp.asarray(x0)
     if x0.shape != (problem.n_nodes, 3):
         raise ParameterError(f"x0 must have shape ({problem.n_nodes}, 3); got {x0.shape}")
     if not isinstance(x0, jax.core.Tracer) and not np.all(np.isfinite(np.asarray(x0))):
         raise ParameterError("x0 holds a non-finite coordinate; every coordinate must be finite")
     validate_params(params)
-    # strong float64 leaves: a Python float and an array then share one compiled solve
-    params = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype=x0.dtype), params)
-    # a solver that updates the pair list before its first force evaluation builds it in
-    # the solve (compiled once there), from an empty list; the others get it built here
-    lazy = getattr((getattr(solver, "warm_start", None) or (solver,))[0], "lazy_force", False)
-    if params.contact is not None and nbrs is None and lazy:
-        nbrs = stale_pairs(params.contact, problem, x0, skin)
-    elif params.contact is not None and nbrs is None:
-        nbrs = init_pairs(params.contact, problem, x0, skin)
-    elif params.contact is not None and not lazy:
-        # the solve assumes a pair list current at x0
-        nbrs = (_refresh(nbrs, x0, problem.triangles, problem.body, skin, params.contact)
-                if isinstance(nbrs, SoftPairs)
-                else _contact.update(nbrs, x0, problem.triangles, problem.body, skin))
-    for _ in range(6):
-        y, result, stats, nb, delta = _solve_jit(solver, problem, params, x0, nbrs,
-                                                 float(skin), bool(whole_lists))
-        if isinstance(result, jax.core.Tracer) or int(result) != RESULTS.neighbour_overflow:
-            break
-        soft = isinstance(nb, SoftPairs)
-        base = nb.base if soft else nb
-        cap = nbrs.capacity
-        if bool(base.overflow):
-            cap = 2 * max(nbrs.capacity, int(base.count))
-        soft_cap = None
-        if soft:
-            soft_cap = nbrs.soft_capacity
-            if bool(nb.soft_overflow):
-                soft_cap = 2 * max(soft_cap, int(nb.soft_count))
-        nbrs = init_pairs(params.contact, problem, x0, skin, capacity=cap,
-                          soft_capacity=soft_cap)
-    if not isinstance(result, jax.core.Tracer) and int(result) == RESULTS.successful:
-        y, result, stats, nb = _verified(solver, problem, params, x0, nbrs, float(skin),
-                                         bool(whole_lists), (y, result, stats, nb, delta))
-    sol = Solution(x=y, result=result, stats=stats, nbrs=nb)
-    if throw:
-        if isinstance(result, jax.core.Tracer):
-            jax.debug.callback(_raise_host, result, stats.residual, stats.steps)
+    return x0, jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype=x0.dtype), params)
+
+
+def contact_args(problem, params, x0, topo=None, caps=None, dhat=None):
+    """(Contact, args extra: empty pair lists that the solve builds at its first step,
+    their topology, the collision weights) for a solve of ``params.contact``; the
+    capacities ``caps`` or, where None, those for a closing valve of this mesh."""
+    kind = _kind(params)
+    if kind is None:
+        return Contact(), {}
+    if topo is None:
+        topo = pair_lists.contact_topology(np.asarray(problem.triangles),
+                                           np.asarray(problem.body),
+                                           np.asarray(problem.fixed), np.asarray(x0))
+    if kind == "barrier":
+        law = params.contact
+        if float(law.dhat) > topo.self_gap:
+            raise ParameterError(f"the barrier's dhat = {float(law.dhat):g} mm must not exceed "
+                                 f"the self-contact gap self_gap = {topo.self_gap:g} mm")
+        caps = caps or pair_lists.Capacities.for_mesh(problem.n_nodes, int(topo.n_edges),
+                                                      int(topo.triangles.shape[0]))
+        lists = pair_lists.stale(x0, caps, law.dhat, SKIN, MARGIN)
+        weights = collision_weights(params.ref, topo.triangles, topo.tri_edge,
+                                    int(topo.n_edges))
+        return Contact("barrier", caps), dict(lists=lists, topo=topo, weights=weights)
+    reach = float(1.25 * vicinity_threshold(jnp.asarray(x0), problem.triangles))
+    caps = caps or pair_lists.Capacities.for_mesh(problem.n_nodes, int(topo.n_edges),
+                                                  int(topo.triangles.shape[0]))
+    lists = pair_lists.stale(x0, caps, reach, SKIN, 0.5)
+    return Contact("paper", caps), dict(lists=lists, topo=topo)
+
+
+def finish(problem, params, engine: Engine, fire: Solution, best, rbest) -> Solution:
+    """The engine's solve after its FIRE phase ``fire``: where FIRE stagnated or reached its
+    cap, Newton on the exact tangent from FIRE's best state (``best``, its residual
+    ``rbest`` < ``engine.finish_below``; `jaxvalve.solvers.finish`), else ``fire`` as it
+    is."""
+    if (int(fire.result) not in (RESULTS.stagnation, RESULTS.max_steps_reached)
+            or not float(rbest) < engine.finish_below):
+        return fire
+    from .finish import newton_finish
+    start_x = best if float(rbest) < float(fire.stats.residual) else fire.x
+    return newton_finish(problem, params, start_x, engine, fire,
+                         fire_steps=int(fire.stats.steps))
+
+
+def fire_batch(problem, params, x0, engine: Engine, topo, caps):
+    """The engine's FIRE phase for a batch of members in one compiled program (`jax.vmap`
+    over the leading axis of every leaf of ``params`` and of x0 (B, N, 3)), the pair lists
+    built inside it at the capacities ``caps``: (y (B, N, 3), result (B,), steps (B,),
+    residual (B,), best state (B, N, 3), its residual (B,), overflow (B,)).  Members whose
+    lists overflowed are the caller's to solve again (`solve`)."""
+    blank, settings = _split(engine.fire(), x0.dtype)
+    contact = Contact("barrier", caps)
+    return _fire_batch(blank, contact, problem, settings, params, x0, topo)
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1))
+def _fire_batch(blank, contact, problem, settings, params, x0, topo):
+    def one(p, x):
+        law = p.contact
+        lists = pair_lists.stale(x, contact.caps, law.dhat, SKIN, MARGIN)
+        w = collision_weights(p.ref, topo.triangles, topo.tri_edge, int(topo.n_edges))
+        args = _args(problem, p, x, dict(lists=lists, topo=topo, weights=w))
+        y, a, result, steps, res, best, rbest = _run_traced(blank, contact, problem,
+                                                            settings, x, args)
+        return (y, result, steps, res, best, rbest,
+                pair_lists.overflow_flag(a["lists"], contact.caps))
+    return jax.vmap(one)(params, x0)
+
+
+def solve(problem: Problem, params: Params, x0, solver=None, *, throw: bool = True,
+          topo=None, caps=None, start_lists=None) -> Solution:
+    """Equilibrium of ``problem`` under ``params`` from x0 (N, 3) mm.
+
+    solver: `NewtonKrylov()` (default without contact), `FIRE()`, `FixedPoint()` or, with
+    the barrier contact, `Engine()` (its default).  throw: raise `ConvergenceError` unless
+    the solve converged; with throw=False inspect ``solution.result``.  topo, caps: the
+    contact topology (`jaxvalve.contact.pairs.contact_topology`, built from the problem
+    and x0 where None) and starting list capacities.  The returned `Solution` carries the
+    final pair lists (``lists``) and capacities (``caps``) for the adjoint and the next
+    solve."""
+    kind = _kind(params)
+    if solver is None:
+        solver = Engine() if kind == "barrier" else NewtonKrylov()
+    x0, params = _check_inputs(problem, params, x0)
+    engine = isinstance(solver, Engine)
+    if engine and kind != "barrier":
+        raise ParameterError("the Engine closes membranes with the barrier contact "
+                             "(params.contact = BarrierContact())")
+    if kind == "paper" and not isinstance(solver, FixedPoint):
+        raise ParameterError("the paper's contact law is solved by FixedPoint (Algorithm 2.1)")
+    loop_solver = solver.fire() if engine else solver
+    traced = any(isinstance(v, jax.core.Tracer)
+                 for v in jax.tree_util.tree_leaves((problem, params, x0)))
+    for _ in range(8):
+        contact, extra = contact_args(problem, params, x0, topo, caps)
+        if kind == "paper":
+            d = (solver.delta if solver.delta is not None else
+                 1.0 / float(jnp.max(jnp.where(problem.free, assembly.stiffness_bound(
+                     x0, problem, params, assembly.prepare(problem, params)), 0.0))))
+            extra["delta"] = jnp.asarray(d, x0.dtype)
+        args = _args(problem, params, x0, extra)
+        blank, settings = _split(loop_solver, x0.dtype)
+        if traced:
+            out = _run_traced(blank, contact, problem, settings, x0, args)
         else:
-            _raise_host(result, stats.residual, stats.steps)
+            out = _run_host(blank, contact, problem, settings, x0, args,
+                            type(loop_solver).__name__)
+        y, args, result, steps, res, best, rbest = out
+        if traced or contact.kind is None or not pair_lists.overflowed(args["lists"],
+                                                                       contact.caps):
+            break
+        caps = contact.caps.grown(args["lists"].cand, args["lists"].act, args["lists"].raw)
+        topo = args["topo"]
+    stats = Stats(steps=steps, force_evals=steps, hvps=jnp.asarray(0), residual=res)
+    sol = Solution(x=y, result=result, stats=stats, lists=args.get("lists"),
+                   caps=contact.caps, topo=args.get("topo"))
+    if engine and not traced:
+        sol = finish(problem, params, solver, sol, best, rbest)
+    if not traced and int(sol.result) == RESULTS.successful:
+        sol = _recheck(problem, params, sol, getattr(solver, "rtol", None))
+    if throw:
+        if isinstance(sol.result, jax.core.Tracer):
+            jax.debug.callback(_raise, sol.result, sol.stats.residual, sol.stats.steps)
+        else:
+            _raise(sol.result, sol.stats.residual, sol.stats.steps)
+    if kind != "paper" and (traced or int(sol.result) == RESULTS.successful):
+        # x* as a differentiable function of params and x0: one adjoint solve, never the
+        # solver's loop
+        sol = dataclasses.replace(sol, x=adjoint.implicit_state(problem, params, x0, sol))
     return sol
-
-
-def _verified(solver, problem, params, x0, nbrs, skin, whole_lists, out):
-    """A converged solve's output (y, result, stats, nbrs), checked by `recheck`.  On a
-    disagreement the solve is compiled anew and run once more (the test suite's machine
-    has returned such results from compiled loops, docs/known-limits.md); if the rerun
-    disagrees too, its result becomes `RESULTS.inconsistent` with the independent
-    residual, never a silent equilibrium."""
-    y, result, stats, nb, delta = out
-    bad = recheck(solver, problem, params, x0, y, nb, delta, stats.residual)
-    if bad is None:
-        return y, result, stats, nb
-    _log.warning("equilibrium: the solver reported convergence at relative residual %.3e, "
-                 "an independent evaluation of its result gives %.3e; compiling the solve "
-                 "anew and running it again", float(stats.residual), bad)
-    with _fresh_compilation():
-        y, result, stats, nb, delta = _solve_jit(solver, problem, params, x0, nbrs, skin,
-                                                 whole_lists)
-        if int(result) != RESULTS.successful:
-            return y, result, stats, nb
-        bad = recheck(solver, problem, params, x0, y, nb, delta, stats.residual)
-    if bad is None:
-        _log.warning("equilibrium: the recompiled solve agrees with the independent "
-                     "evaluation (relative residual %.3e)", float(stats.residual))
-        return y, result, stats, nb
-    stats = dataclasses.replace(stats, residual=jnp.asarray(bad, stats.residual.dtype))
-    return y, jnp.asarray(RESULTS.inconsistent, jnp.asarray(result).dtype), stats, nb
-
-
-@jax.custom_vjp
-def _implicit(problem, params, x0, x, nbrs, delta):
-    return jnp.where(problem.fixed[:, None], x0, x)
-
-
-def _implicit_fwd(problem, params, x0, x, nbrs, delta):
-    y = _implicit(problem, params, x0, x, nbrs, delta)
-    return y, (problem, params, y, nbrs, delta)
-
-
-def _implicit_bwd(res, g):
-    problem, params, y, nb, delta = res
-    gp, gx0 = adjoint.cotangents(problem, params, y, nb, delta, g)
-    return (_zeros_like(problem), gp, gx0, jnp.zeros_like(y), _zeros_like(nb),
-            jnp.zeros_like(delta))
-
-
-_implicit.defvjp(_implicit_fwd, _implicit_bwd)
-
-
-def implicit_state(problem: Problem, params: Params, x0, solution: Solution):
-    """The converged ``solution.x`` (N, 3) mm of ``solve(problem, params, x0, ...)`` as a
-    differentiable function of ``params`` and of the fixed positions in x0, without
-    running the solver again: the value is ``solution.x`` (fixed nodes taken from x0), and
-    the reverse-mode derivative is `solve`'s implicit adjoint (one solve K^T mu = g).
-
-    Use it to split a forward solve (run once, on the host) from a gradient evaluation
-    that compiles only the adjoint.  The caller guarantees that ``solution`` converged for
-    these params and fixed positions: a solution that did not converge raises
-    `ConvergenceError` here (the adjoint of a non-equilibrium is meaningless)."""
-    if params.contact is not None and hasattr(params.contact, "force"):
-        raise ParameterError("implicit_state needs a differentiable contact law "
-                             "(SmoothContact); the paper's law has no adjoint")
-    if not isinstance(solution.result, jax.core.Tracer):
-        _raise_host(solution.result, solution.stats.residual, solution.stats.steps)
-    params = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype=solution.x.dtype), params)
-    return _implicit(problem, params, jnp.asarray(x0), jax.lax.stop_gradient(solution.x),
-                     solution.nbrs, jnp.asarray(0.0, solution.x.dtype))

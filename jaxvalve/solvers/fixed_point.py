@@ -5,7 +5,9 @@ import dataclasses
 
 import jax.numpy as jnp
 
-from ..vmap_control import cond_each
+import jax
+
+from ..unvmap import unvmap_any
 from ..errors import ParameterError
 from .base import RESULTS, check_settings, check_state, relative_residual
 
@@ -52,18 +54,20 @@ class FixedPoint:
                     evals=jnp.asarray(1))
 
     def step(self, system, y, args, s):
+        args = system.update(y, args)
         y = y + s["delta"] * s["F"]
         F = system.force(y, args)
         delta = s["delta"]
         Fn = jnp.linalg.norm(F)
         if self.delta is None and self.refresh > 0:
             # refresh on schedule, and at once when the force grows (onset of instability)
-            due = (((s["n"] + 1) % self.refresh == 0) | (Fn > 2.0 * s["Fn"])) \
-                & args.get("active", True)
-            delta = cond_each(due, lambda d, y, a: jnp.minimum(d, self._delta_bound(system, y, a)),
-                              lambda d, y, a: d, delta, y, args)
-        return y, dict(F=F, Fn=Fn, delta=delta, dx0=s["dx0"], dx=delta * Fn, n=s["n"] + 1,
-                       evals=s["evals"] + 1)
+            due = ((s["n"] + 1) % self.refresh == 0) | (Fn > 2.0 * s["Fn"])
+            delta = jax.lax.cond(
+                unvmap_any(due),
+                lambda d: jnp.where(due, jnp.minimum(d, self._delta_bound(system, y, args)), d),
+                lambda d: d, delta)
+        return y, args, dict(F=F, Fn=Fn, delta=delta, dx0=s["dx0"], dx=delta * Fn,
+                             n=s["n"] + 1, evals=s["evals"] + 1)
 
     def terminate(self, system, y, args, s):
         if self.rtol is None:

@@ -98,6 +98,7 @@ class NewtonKrylov:
         return x, j, neg
 
     def step(self, system, y, args, s):
+        args = system.update(y, args)
         free = system.free[:, None]
         F = s["F"]
         Fn = jnp.linalg.norm(F)
@@ -110,7 +111,7 @@ class NewtonKrylov:
         eta = jnp.clip(jnp.sqrt(Fn / s["F0"]), self.eta_min, self.eta_max)
         d, n_cg, neg = self._cg(Av, Pinv, F, eta * Fn)
         dmax = jnp.max(jnp.linalg.norm(d, axis=-1))
-        limit = jnp.minimum(self.max_step, args["max_move"])  # contact skin / 2
+        limit = jnp.minimum(self.max_step, system.step_cap(y, args))
         alpha0 = jnp.minimum(1.0, limit / jnp.where(dmax > 0, dmax, 1.0))
 
         def ls_cond(c):
@@ -132,7 +133,7 @@ class NewtonKrylov:
         mu = jnp.where(neg, jnp.maximum(mu * 4.0, 1e-4), mu)
         y = jnp.where(ok, yt, y)
         F = jnp.where(ok, Ft, F)
-        return y, dict(F=F, F0=s["F0"], mu=mu, n=s["n"] + 1,
+        return y, args, dict(F=F, F0=s["F0"], mu=mu, n=s["n"] + 1,
                        fails=jnp.where(ok, 0, s["fails"] + 1), evals=s["evals"] + k,
                        hvps=s["hvps"] + n_cg + 1)
 

@@ -89,7 +89,7 @@ class BulgePredictor:
         t, gt = jnp.where(near, a, b), jnp.where(near, ga, gb)
         ok = (g_hi <= 0) & jnp.isfinite(t) & jnp.isfinite(gt)
         y = jnp.where(ok, y + t * phi, y)
-        return y, dict(n=s["n"] + 1, evals=s["evals"] + kb + self.root_steps + 2)
+        return y, args, dict(n=s["n"] + 1, evals=s["evals"] + kb + self.root_steps + 2)
 
     def terminate(self, system, y, args, s):
         return s["n"] >= 1, jnp.asarray(RESULTS.successful)

@@ -9,7 +9,6 @@ from ..lazy_exports import lazy_exports
 
 _API = (
     'STATE_FAILURES', 'Valve', 'ValveSolution', 'build_valve', 'checked', 'close',
-    'commissure_groups', 'leaflet_crossings', 'settle', 'state_failure',
-    'valve_contact')
+    'commissure_groups', 'leaflet_crossings', 'settle', 'state_failure')
 
 __getattr__, __dir__ = lazy_exports(__name__, "model", _API)

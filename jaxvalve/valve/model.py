@@ -16,15 +16,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..solvers import equilibrium
-from ..contact import SmoothContact
+from ..contact import BarrierContact
 from ..errors import ConvergenceError, ParameterError
 from ..geometry.leaflet_mesh import LeafletMesh
 from .placement import place_leaflet
 from ..mechanics.problem import Params, Problem, make_problem, mmhg
 from ..solvers import FIRE, RESULTS, Solution
 
-__all__ = ["Valve", "build_valve", "settle", "close", "valve_contact", "state_failure",
-           "leaflet_crossings"]
+__all__ = ["Valve", "build_valve", "settle", "close", "state_failure", "leaflet_crossings"]
 
 
 #: The valve's own outcomes (`state_failure`): the solver met its tolerance, but the state
@@ -60,12 +59,6 @@ class ValveSolution(Solution):
 
     def _message(self) -> str:
         return STATE_FAILURES[self.state] if self.state is not None else super()._message()
-
-
-def valve_contact():
-    """The valve's default contact law: smooth penalty, one-sided (leaflets coapt with their
-    +n, ventricular, sides), soft minimum over the candidate triangles."""
-    return SmoothContact(one_sided=True, soft_min=True)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -105,19 +98,12 @@ class Valve:
         return np.asarray(self.problem.body)
 
     @functools.cached_property
-    def barrier_topology(self):
-        """`jaxvalve.contact.ipc_pairs.BarrierTopology` of the three leaflets (barrier
-        contact): weights, edges, and the commissure pins where neighbours are sewn to one
-        point."""
-        from ..contact.ipc_pairs import barrier_topology
-        return barrier_topology(self.triangles, self.body, np.asarray(self.ref),
-                                np.asarray(self.problem.fixed), self.x_placed)
-
-    @functools.cached_property
-    def skin(self) -> float:
-        """Verlet skin (mm) of the contact pair lists: the leaflet mesh's median edge,
-        at most 1 mm (`equilibrium.mesh_skin`)."""
-        return equilibrium.mesh_skin(self.leaflet.triangles, self.leaflet.points)
+    def contact_topology(self):
+        """`jaxvalve.contact.pairs.ContactTopology` of the three leaflets: edges, leaflet
+        ids, and the commissure pins where neighbours are sewn to one point."""
+        from ..contact.pairs import contact_topology
+        return contact_topology(self.triangles, self.body, np.asarray(self.problem.fixed),
+                                self.x_placed)
 
     def leaflet_slice(self, i):
         n = self.nodes_per_leaflet
@@ -128,7 +114,7 @@ class Valve:
         """`Params` for this valve (pressure in mmHg)."""
         return Params(ref=self.ref, material=material, thickness=thickness,
                       pressure=mmhg(pressure_mmhg), fibre_angle=fibre_angle,
-                      contact=valve_contact() if contact is None else contact,
+                      contact=BarrierContact() if contact is None else contact,
                       bending=bending)
 
 
@@ -163,7 +149,7 @@ def settle(valve: Valve, material, *, solver=None, thickness=0.3) -> Valve:
     residual: the default stops at a relative residual of 1e-3 or after 2000 FIRE steps,
     whichever comes first.  Unloaded leaflets hang apart, so no contact is computed here.
     Returns the valve with ``x_start`` set and the relaxation's `Solution`."""
-    solver = FIRE(rtol=1e-3, max_steps=2000) if solver is None else solver
+    solver = FIRE(rtol=1e-3, max_steps=2000, patience=0) if solver is None else solver
     params = valve.params(material, 0.0, None, thickness).replace(contact=None)
     sol = equilibrium.solve(valve.problem, params, jnp.asarray(valve.x_placed), solver,
                             throw=False)
@@ -174,58 +160,36 @@ def settle(valve: Valve, material, *, solver=None, thickness=0.3) -> Valve:
 
 def close(valve: Valve, material, pressure_mmhg=80.0, *, solver=None, contact=None,
           thickness=0.3, fibre_angle=0.0, bending=None, x0=None, throw=True,
-          check_state=False, nbrs=None, ref=None, whole_lists=False):
+          check_state=False, caps=None, ref=None):
     """One equilibrium solve of the valve under ``pressure_mmhg`` from ``x0`` (default
-    x_start).  Closing a valve under its loads, with continuation in pressure, is
-    `jaxvalve.valve.closure` (the one closure driver), which calls this for every solve.
+    x_start), by ``solver`` (default the engine).  Closing a valve under its loads, with
+    continuation in pressure, is `jaxvalve.valve.closure` (the one closure driver), which
+    calls this for every solve.
 
-    check_state: test a converged state with `leaflet_crossings` and
-    `checks.triangle_checks` (host side, ~10 ms at h = 2 mm); if leaflets cross, the
-    returned `ValveSolution` has state ``"leaflets_cross"``, and if a triangle is folded
-    over its neighbour or collapsed, ``"inverted_triangles"`` (not converged; raised as
-    `ConvergenceError` when ``throw``).  The contact law acts between nodes and the other
-    leaflets' faces within its pair-list range, so it can neither see two faces that
-    graze through each other between nodes (coarse meshes, at the three-leaflet
-    junction) nor pull back leaflets started more than ~1 mm through one another; and a
-    mass-spring triangle turned over has the same spring lengths, so only bending resists
-    it.  Without this check such states are returned as converged (docs/known-limits.md).
-    nbrs: a contact pair list to start from (`equilibrium.solve`), e.g. an empty one of
-    larger capacity (`equilibrium.stale_pairs`) so that a crumpling closure does not
-    overflow and recompile.  ref (N, 2|3) mm: the leaflets' reference where it is not
-    ``valve.ref`` (a mapped template, `optimize.Evaluator`; traced, so a new template
-    does not recompile).  whole_lists: `equilibrium.solve`'s."""
+    check_state: test a converged state with `state_failure` (host side): leaflets that
+    cross, or a triangle collapsed, make the returned `ValveSolution` not converged
+    (raised as `ConvergenceError` when ``throw``).  caps: pair-list capacities to start
+    from (`jaxvalve.contact.pairs.Capacities`).  ref (N, 2|3) mm: the leaflets' reference
+    where it is not ``valve.ref`` (a mapped template, `optimize.Evaluator`; traced, so a
+    new template does not recompile)."""
     params = valve.params(material, pressure_mmhg, contact, thickness, fibre_angle, bending)
     if ref is not None:
         params = params.replace(ref=ref)
     x0 = valve.x_start if x0 is None else x0
-    if getattr(params.contact, "barrier", False):
-        from ..solvers import BarrierNewton, solve_barrier
-        solver = BarrierNewton() if solver is None else solver
-        if not isinstance(solver, BarrierNewton):
-            raise ParameterError("the barrier contact is solved by BarrierNewton; got "
-                                 f"{type(solver).__name__}")
-        topo = valve.barrier_topology
-        if ref is not None:      # a mapped template: its own collision weights
-            from ..contact.ipc_pairs import barrier_topology
-            topo = barrier_topology(valve.triangles, valve.body, np.asarray(ref),
-                                    np.asarray(valve.problem.fixed), valve.x_placed)
-        sol, _ = solve_barrier(valve.problem, params, np.asarray(x0, np.float64), solver,
-                               topo)
-        if throw and not check_state and not sol.converged:
-            raise ConvergenceError(f"valve closure at {pressure_mmhg:g} mmHg did not "
-                                   f"converge: {sol.describe()}", sol)
-    else:
-        sol = equilibrium.solve(valve.problem, params, jnp.asarray(x0), solver,
-                                throw=throw and not check_state, nbrs=nbrs, skin=valve.skin,
-                                whole_lists=whole_lists)
-    barrier = getattr(params.contact, "barrier", False)
-    sol = checked(valve, sol, ref=ref,
-                  self_contact=barrier and topo.self_contact) if check_state else ValveSolution(
-        x=sol.x, result=sol.result, stats=sol.stats, nbrs=sol.nbrs)
+    sol = equilibrium.solve(valve.problem, params, jnp.asarray(x0), solver,
+                            throw=throw and not check_state, topo=valve.contact_topology,
+                            caps=caps)
+    barrier = isinstance(params.contact, BarrierContact)
+    sol = (checked(valve, sol, ref=ref, self_contact=barrier) if check_state
+           else ValveSolution(**_fields(sol)))
     if throw and check_state and not sol.converged:
         raise ConvergenceError(f"valve closure at {pressure_mmhg:g} mmHg did not converge: "
                                f"{sol.describe()}", sol)
     return sol
+
+
+def _fields(sol: Solution) -> dict:
+    return {f.name: getattr(sol, f.name) for f in dataclasses.fields(Solution)}
 
 
 def checked(valve: Valve, sol: Solution, ref=None, self_contact: bool = False
@@ -239,8 +203,7 @@ def checked(valve: Valve, sol: Solution, ref=None, self_contact: bool = False
     if sol.converged:
         v = valve if ref is None else dataclasses.replace(valve, ref=np.asarray(ref))
         state = state_failure(v, sol.x, self_contact=self_contact)
-    return ValveSolution(x=sol.x, result=sol.result, stats=sol.stats, nbrs=sol.nbrs,
-                         state=state)
+    return ValveSolution(**_fields(sol), state=state)
 
 
 def state_failure(valve: Valve, x, *, self_contact: bool = False):

@@ -1,0 +1,180 @@
+"""The barrier's pair lists inside jit (`jaxvalve.contact.pairs`) against a brute force on
+the host, their overflow flag and growth, and the chunked barrier forces
+(`jaxvalve.contact.barrier.forces`) against autodiff of the pair energies."""
+import itertools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxvalve.contact import pairs as pair_lists
+from jaxvalve.contact.barrier import BarrierContact, collision_weights, forces
+from jaxvalve.contact.geometry import point_triangle_distance_np
+from jaxvalve.geometry.mesh import unique_edges
+from sheets import combine, grid_sheet
+
+CUTOFF = 0.45
+
+
+def _bodies(seed=0, n=6, L=3.0):
+    """Two crumpled sheets 0.25 mm apart and a third folded over the first: pairs of
+    different bodies and of one body (the fold) within the cutoff."""
+    rng = np.random.default_rng(seed)
+    sheets = []
+    for k in range(2):
+        p, t = grid_sheet(n, L, z=0.25 * k, jitter=0.15, rng=rng, flip=bool(k))
+        p[:, 2] += 0.08 * np.sin(1.3 * p[:, 0] + k) * np.cos(0.9 * p[:, 1])
+        sheets.append((p, t))
+    x, tri, body = combine(*sheets)
+    # the template: each sheet flat, far apart (the self-contact gap is measured there)
+    ref = x.copy()
+    ref[:, 2] = 0.0
+    ref[body == 1, 0] += 10.0
+    return x, tri, body, ref
+
+
+def _seg_seg_np(a0, a1, b0, b1):
+    """Distance between two segments by dense sampling then refinement (reference)."""
+    s = np.linspace(0, 1, 201)
+    P = a0 + s[:, None] * (a1 - a0)
+    Q = b0 + s[:, None] * (b1 - b0)
+    d = np.linalg.norm(P[:, None] - Q[None], axis=-1)
+    i, j = np.unravel_index(np.argmin(d), d.shape)
+    from scipy.optimize import minimize
+    f = lambda st: np.sum((a0 + st[0] * (a1 - a0) - b0 - st[1] * (b1 - b0)) ** 2)
+    r = minimize(f, [s[i], s[j]], bounds=[(0, 1), (0, 1)], method="L-BFGS-B",
+                 options=dict(ftol=1e-15, gtol=1e-12))
+    return np.sqrt(r.fun)
+
+
+def _brute(x, tri, body, ref, cutoff, gap):
+    """Every point-triangle and edge-edge pair within cutoff, by loops: no shared node,
+    and of one body only where their template balls are gap apart."""
+    edges, _ = unique_edges(tri)
+    ball = lambda rows: (ref[rows].mean(0), np.max(np.linalg.norm(ref[rows] - ref[rows].mean(0), axis=1)))
+    pt, ee = set(), set()
+    for p in range(len(x)):
+        for t in tri:
+            if p in t:
+                continue
+            if body[p] == body[t[0]]:
+                c, r = ball(t)
+                if np.linalg.norm(ref[p] - c) < gap + r:
+                    continue
+            d = float(point_triangle_distance_np(x[p][None], *(x[t][k][None] for k in range(3)))[0])
+            if d < cutoff:
+                pt.add((p,) + tuple(t))
+    for e, f in itertools.combinations(range(len(edges)), 2):
+        a, b = edges[e], edges[f]
+        if set(a) & set(b):
+            continue
+        if body[a[0]] == body[b[0]]:
+            (ca, ra), (cb, rb) = ball(a), ball(b)
+            if np.linalg.norm(ca - cb) < gap + ra + rb:
+                continue
+        # quick reject by bounding boxes, then the reference distance
+        if np.min(np.linalg.norm(x[a][:, None] - x[b][None], axis=-1)) > cutoff + 1.0:
+            continue
+        if _seg_seg_np(*x[a], *x[b]) < cutoff:
+            ee.add(frozenset((tuple(a), tuple(b))))
+    return pt, ee
+
+
+def _listed(pl):
+    n_pt, n_ee = int(pl.n_pt), int(pl.n_ee)
+    pt = {tuple(r) for r in np.asarray(pl.pt)[:n_pt].tolist()}
+    ee = {frozenset((tuple(r[:2]), tuple(r[2:]))) for r in np.asarray(pl.ee)[:n_ee].tolist()}
+    return pt, ee, n_pt, n_ee
+
+
+def _canon_pt(pt, tri):
+    """Point-triangle rows keyed by (p, sorted triangle) (the list keeps the mesh's order)."""
+    return {(r[0],) + tuple(sorted(r[1:])) for r in pt}
+
+
+def test_in_jit_lists_equal_the_brute_force():
+    x, tri, body, ref = _bodies()
+    topo = pair_lists.contact_topology(tri, body, np.zeros(len(x), bool), x, self_gap=0.4)
+    lists, caps = pair_lists.allocate(topo, jnp.asarray(ref), jnp.asarray(x), CUTOFF, 0.0, 0.0)
+    pt, ee, n_pt, n_ee = _listed(lists.cand)
+    assert len(pt) == n_pt and len(ee) == n_ee            # no row listed twice
+    want_pt, want_ee = _brute(x, tri, body, ref, CUTOFF, 0.4)
+    assert len(want_pt) > 20 and len(want_ee) > 20
+    assert _canon_pt(pt, tri) == _canon_pt(want_pt, tri)
+    assert ee == want_ee
+
+
+def test_self_pairs_follow_the_template_gap():
+    """A sheet folded onto itself: pairs of one body are listed where their template balls
+    lie self_gap apart, never between template neighbours."""
+    p, t = grid_sheet(8, 4.0)
+    ref = p.copy()
+    x = p.copy()
+    fold = x[:, 0] > 2.0                              # fold the right half over the left
+    x[fold, 0] = 4.0 - x[fold, 0]
+    x[fold, 2] = 0.3
+    body = np.zeros(len(x), np.int64)
+    topo = pair_lists.contact_topology(t, body, np.zeros(len(x), bool), x, self_gap=1.2)
+    lists, _ = pair_lists.allocate(topo, jnp.asarray(ref), jnp.asarray(x), CUTOFF, 0.0, 0.0)
+    pt, ee, n_pt, n_ee = _listed(lists.cand)
+    want_pt, want_ee = _brute(x, t, body, ref, CUTOFF, 1.2)
+    assert n_pt > 10 and _canon_pt(pt, t) == _canon_pt(want_pt, t) and ee == want_ee
+
+
+def test_overflow_is_flagged_and_allocate_grows_the_capacities():
+    x, tri, body, ref = _bodies()
+    topo = pair_lists.contact_topology(tri, body, np.zeros(len(x), bool), x, self_gap=0.4)
+    small = pair_lists.Capacities(pt=16, ee=16, raw_pt=64, raw_ee=64, scan_pt=256,
+                                  scan_ee=256, act_pt=16, act_ee=16, table=16384)
+    lists = pair_lists.start(topo, jnp.asarray(ref), jnp.asarray(x), small, CUTOFF, 0.0, 0.0)
+    assert pair_lists.overflowed(lists, small)
+    with pytest.raises(Exception, match="overflowed their capacities"):
+        pair_lists.check_overflow(lists, small)
+    grown, caps = pair_lists.allocate(topo, jnp.asarray(ref), jnp.asarray(x), CUTOFF, 0.0,
+                                      0.0, caps=small)
+    assert not pair_lists.overflowed(grown, caps) and caps.pt > small.pt
+    full, _ = pair_lists.allocate(topo, jnp.asarray(ref), jnp.asarray(x), CUTOFF, 0.0, 0.0)
+    assert _listed(grown.cand)[:2] == _listed(full.cand)[:2]
+
+
+def test_min_distance_is_the_smallest_pair_distance():
+    x, tri, body, ref = _bodies()
+    topo = pair_lists.contact_topology(tri, body, np.zeros(len(x), bool), x, self_gap=0.4)
+    d = pair_lists.min_distance(topo, jnp.asarray(ref), x, cutoff=CUTOFF)
+    up = body == 1
+    lo = ~up
+    brute = min(float(point_triangle_distance_np(x[p][None], *(x[t][k][None] for k in range(3)))[0])
+                for p in np.flatnonzero(up) for t in tri[np.all(lo[tri], axis=1)])
+    assert 0 < d <= brute + 1e-12
+
+
+def test_chunked_forces_equal_autodiff_and_obey_newtons_third_law():
+    """`barrier.forces` (hand-written gradients, a chunk of rows at a time) against
+    jax.grad of the typed closed forms over the same list; the forces of a rigid-motion
+    invariant energy sum to zero and carry no torque."""
+    x, tri, body, ref = _bodies()
+    law = BarrierContact(dhat=0.3)
+    topo = pair_lists.contact_topology(tri, body, np.zeros(len(x), bool), x, self_gap=0.4)
+    lists, _ = pair_lists.allocate(topo, jnp.asarray(ref), jnp.asarray(x), 0.3, 0.0, 0.0)
+    w = collision_weights(jnp.asarray(ref), topo.triangles, topo.tri_edge, int(topo.n_edges))
+    X = jnp.asarray(x)
+    E, g, dmin, stiff = forces(law, X, lists.act, w)
+    assert int(lists.act.n_pt) > 10 and int(lists.act.n_ee) > 10
+    from jaxvalve.contact.barrier import pair_weights
+    act = lists.act
+    pt_w, ee_w, eps = pair_weights(*w, act.pt[:, 0], act.ee_id)
+    pt_w = jnp.where(act.pt_valid, pt_w, 0.0)
+    ee_w = jnp.where(act.ee_valid, ee_w, 0.0)
+    keep = lambda r, ok: jnp.where(ok[:, None], r, r[:1])
+    E2, g2 = jax.value_and_grad(lambda y: law.energy_pairs(
+        y, keep(act.pt, act.pt_valid), pt_w, keep(act.ee, act.ee_valid), ee_w, eps))(X)
+    scale = float(jnp.abs(g2).sum())
+    assert scale > 0
+    np.testing.assert_allclose(float(E), float(E2), rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(g), np.asarray(g2), atol=1e-12 * scale)
+    np.testing.assert_allclose(np.asarray(g).sum(0), 0.0, atol=1e-12 * scale)
+    torque = np.cross(x - x.mean(0), np.asarray(g)).sum(0)
+    np.testing.assert_allclose(torque, 0.0, atol=1e-10 * scale)
+    # dmin: each listed node's smallest pair distance, never below the true one
+    assert float(jnp.min(dmin)) > 0 and np.isfinite(float(jnp.min(dmin)))
