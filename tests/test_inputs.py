@@ -90,6 +90,8 @@ def test_bad_thickness_pressure_and_start_are_rejected():
     (lambda: NewtonKrylov(eta_min=0.5, eta_max=0.1), r"eta_min <= eta_max"),
     (lambda: NewtonKrylov(cg_max=0), r"NewtonKrylov\.cg_max must be an integer >= 1"),
     (lambda: NewtonKrylov(warm_start=("bulge",)), r"NewtonKrylov\.warm_start must hold solvers"),
+    (lambda: Engine(finish_below=0.0), r"Engine\.finish_below must be finite and > 0"),
+    (lambda: Engine(newton_steps=-1), r"Engine\.newton_steps must be an integer >= 0"),
     (lambda: FixedPoint(safety=2.0), r"FixedPoint\.safety must lie in \(0, 2\)"),
     (lambda: FixedPoint(delta=-1.0), r"FixedPoint\.delta must be finite and > 0 \(or None\)"),
     (lambda: FixedPoint(step_rtol=1.5), r"FixedPoint\.step_rtol must be in \(0, 1\)"),

@@ -32,12 +32,10 @@ edge-edge terms.  An edge-edge collision weighs (A_a + A_b) / 4 with A_e a third
 reference area of the triangles at edge e.  With these weights kappa is a pressure (MPa)
 and the law does not change with the mesh size.
 
-Defaults.  d_hat = 0.2 mm: coapted leaflets end up closer than d_hat, well inside the
-coaptation distance g_c = 0.5 mm, so the zone is measured on touching tissue, and the
-barrier acts only within a fifth of a typical 0.9 mm edge.  kappa = 1e-3 MPa: two sheets
-pressed at 80 mmHg (0.0107 MPa) by face-vertex terms alone settle at about d_hat / 4 =
-0.05 mm (p(d_hat/4) = 9.6 kappa); their contact stiffness p / d ~ 0.2 MPa/mm, times a node
-area of ~0.7 mm^2, is of the order of the membrane stiffness E H = 0.3 N/mm at E = 1 MPa.
+Defaults.  d_hat = 0.2 mm, inside the coaptation distance g_c = 0.5 mm, so the zone is
+measured on touching tissue; kappa = 1e-3 MPa, so that sheets pressed at 80 mmHg settle
+well inside d_hat with a contact stiffness of the membrane's order
+(docs/barrier-contact.md, "Defaults").
 """
 from __future__ import annotations
 
@@ -51,11 +49,12 @@ import numpy as np
 from ..errors import ParameterError
 from ..unvmap import unvmap_max
 from .ipc_distance import (edge_edge_cross2, edge_edge_distance2, edge_edge_params, mollifier,
+                           mollifier_d,
                            mollifier_threshold, point_triangle_distance2,
                            point_triangle_weights)
 
 __all__ = ["BarrierContact", "barrier", "pt_energies", "ee_energies", "collision_weights",
-           "pair_weights", "forces", "energy", "CHUNK"]
+           "pair_weights", "forces", "barrier_d", "CHUNK"]
 
 DEFAULT_DHAT = 0.2        # mm
 DEFAULT_KAPPA = 1e-3      # MPa
@@ -63,9 +62,7 @@ DEFAULT_KAPPA = 1e-3      # MPa
 
 def barrier(z):
     """B(z) = -(z - 1)^2 ln z for 0 < z < 1, else 0 (z = d^2 / d_hat^2)."""
-    act = z < 1.0
-    zs = jnp.where(act, z, 1.0)
-    return jnp.where(act, -(zs - 1.0) ** 2 * jnp.log(zs), 0.0)
+    return barrier_d(z)[0]
 
 
 @jax.tree_util.register_dataclass
@@ -188,7 +185,7 @@ def ee_energies(law, x, ee, ee_w, ee_eps):
 CHUNK = 512
 
 
-def _barrier_d(z):
+def barrier_d(z):
     """(B(z), B'(z), B''(z)) for z = d^2 / d_hat^2 (zero from z = 1 on)."""
     on = z < 1.0
     zs = jnp.where(on, jnp.maximum(z, 1e-300), 1.0)
@@ -217,7 +214,7 @@ def _pt_chunk(law, xr, w):
     r = p - (W[:, 0:1] * a + W[:, 1:2] * b + W[:, 2:3] * c)
     d2 = jnp.sum(r * r, -1)
     scale = law.stiffness * law.dhat * w
-    B, B1, B2 = _barrier_d(jnp.where(w > 0, d2 / (law.dhat * law.dhat), 1.0))
+    B, B1, B2 = barrier_d(jnp.where(w > 0, d2 / (law.dhat * law.dhat), 1.0))
     gp = (scale * B1 * 2.0 / (law.dhat * law.dhat))[:, None] * r
     g = jnp.stack([gp, -W[:, 0:1] * gp, -W[:, 1:2] * gp, -W[:, 2:3] * gp], 1)
     return (jnp.sum(scale * B), g, jnp.where(w > 0, d2, jnp.inf),
@@ -233,11 +230,9 @@ def _ee_chunk(law, xr, w, eps):
     d2 = jnp.sum(r * r, -1)
     cr = jnp.cross(u, v)
     x = jnp.sum(cr * cr, -1)
-    e = jnp.where(w > 0, eps, 1.0)
-    q = jnp.clip(1.0 - x / e, 0.0, 1.0)
-    m, dm = 1.0 - q ** 3, 3.0 * q * q / e            # m(x) and m'(x) (0 from x = eps on)
+    m, dm = mollifier_d(x, jnp.where(w > 0, eps, 1.0))
     scale = law.stiffness * law.dhat * w
-    B, B1, B2 = _barrier_d(jnp.where(w > 0, d2 / (law.dhat * law.dhat), 1.0))
+    B, B1, B2 = barrier_d(jnp.where(w > 0, d2 / (law.dhat * law.dhat), 1.0))
     gd = (scale * m * B1 * 2.0 / (law.dhat * law.dhat))[:, None] * r   # d E / d r
     gx = (scale * B * dm * 2.0)[:, None]                                 # d E / d x / 2
     gu = gx * jnp.cross(v, cr)
@@ -293,7 +288,3 @@ def forces(law, x, pairs, weights):
                           lambda xr, w, eps: _ee_chunk(law, xr, w, eps), carry)
     return E, g, jnp.sqrt(dmin2), kb
 
-
-def energy(law, x, pairs, weights):
-    """Barrier energy (N mm) over the pairs in use (`forces`'s first output)."""
-    return forces(law, x, pairs, weights)[0]

@@ -25,7 +25,7 @@ import numpy as np
 
 from .geometry import point_triangle_distance_np
 
-__all__ = ["PT_FACE", "PT_EDGE", "PT_VERTEX", "point_triangle_type", "point_triangle_weights",
+__all__ = ["mollifier_d", "PT_FACE", "PT_EDGE", "PT_VERTEX", "point_triangle_type", "point_triangle_weights",
            "edge_edge_params",
            "point_triangle_distance2", "point_triangle_distance2_np",
            "edge_edge_type", "edge_edge_distance2",
@@ -212,8 +212,13 @@ def mollifier(x, eps_x):
     undefined, and C2 at the threshold (m' = m'' = 0 there).  IPC's (2 - x / eps_x) x /
     eps_x is only C1 there, and its jump in m'' is a jump in the Hessian of every pair
     that crosses the threshold."""
-    r = x / eps_x
-    return jnp.where(r < 1.0, 1.0 - (1.0 - r) ** 3, 1.0)
+    return mollifier_d(x, eps_x)[0]
+
+
+def mollifier_d(x, eps_x):
+    """(m(x), m'(x)) of `mollifier` (the barrier's hand-written forces)."""
+    q = jnp.clip(1.0 - x / eps_x, 0.0, 1.0)
+    return 1.0 - q ** 3, 3.0 * q * q / eps_x
 
 
 # ------------------------------------------------------------------- NumPy (host side)

@@ -37,7 +37,8 @@ from ..errors import ConvergenceError, ParameterError
 from ..mechanics import assembly
 from ..mechanics.problem import Params, Problem, validate_params
 from . import adjoint
-from .base import (RESULTS, EquilibriumSystem, Solution, Stats, end, escape_distance,
+from .base import (RESULTS, EquilibriumSystem, Solution, Stats, check_settings, end,
+                   escape_distance,
                    relative_residual, run, running, start)
 from .fire import FIRE
 from .fixed_point import FixedPoint
@@ -72,6 +73,11 @@ class Engine:
     #: (`jaxvalve.solvers.continuation.cut_on`): a finish that stalled, or a state with a
     #: collapsed triangle, may pass from a nearer equilibrium
     cut_on = ("stagnation", "max_steps_reached", "inverted_triangles")
+
+    def __post_init__(self):
+        check_settings(self, dict(rtol="positive", max_steps="count", patience="count",
+                                  dt_max="positive", newton_steps="count",
+                                  finish_below="positive"))
 
     def fire(self) -> FIRE:
         return FIRE(rtol=self.rtol, max_steps=self.max_steps, patience=self.patience,
