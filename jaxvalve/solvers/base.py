@@ -30,7 +30,6 @@ class RESULTS(enum.IntEnum):
     stagnation = 5
     # 6 and 7 were valve state checks; they are `jaxvalve.valve.STATE_FAILURES` now
     escaped = 8            # a node moved farther than the structure's size from the start
-    inconsistent = 9       # the loop said converged; an independent evaluation disagrees
     unstable = 10          # converged to an equilibrium that is not stable
 
     @property
@@ -50,10 +49,6 @@ _MESSAGES = {
     RESULTS.escaped: ("a node moved farther from its start than the structure's diameter: "
                       "no equilibrium near the start (a load past the structure's limit "
                       "point, or an unrestrained rigid-body drift)"),
-    RESULTS.inconsistent: ("the solver's compiled loop reported convergence, but an "
-                           "independent evaluation of its result disagrees (the residual by "
-                           "autodiff of the energies, on pair lists built afresh): a wrong "
-                           "compiled program, not an equilibrium"),
     RESULTS.unstable: ("the solve reached an equilibrium that is not stable (its exact "
                        "Jacobian has an eigenvalue of negative real part), and pushes "
                        "along that mode found no stable one: a state no closing valve "

@@ -4,15 +4,16 @@ FIRE stalls where the coapted leaflets have a nearly free sliding mode: its resi
 to 1e-3 - 1e-2 and wanders.  Newton resolves that mode at once.  Each step:
 
 1. Direction: K d = F with K = -dF/dx the exact tangent (`jaxvalve.solvers.tangent`),
-   by a sparse LU (scipy's SuperLU); where the step below fails, Levenberg-Marquardt
-   damping (K + mu diag|K|) d = F, mu raised tenfold until a step succeeds and lowered
-   after each success.
+   by a sparse LU (scipy's SuperLU); in a backtracking step that fails,
+   Levenberg-Marquardt damping (K + mu diag|K|) d = F, mu raised tenfold until a step
+   succeeds and lowered after each success.
 2. Length: at most ``max_move`` mm for a node and what the pair lists allow
    (`jaxvalve.contact.pairs.Lists.step_cap`), then the largest fraction that additive
    CCD (Li, Kaufman and Jiang 2021) proves free of contact on the candidate pairs
    (`ccd_fraction`): the leaflets never meet.
-3. Acceptance: the relative residual falls (backtracking, halving the step); the trial
-   state must be admissible (finite, inside the material's stretch limit).
+3. Acceptance by a watchdog (`newton_finish`): full steps while the residual comes back
+   below the reference's within a few steps, else backtracking from the reference; every
+   trial state must be admissible (finite, inside the material's stretch limit).
 
 It runs on the host, around jitted kernels, for the members of a batch in turn; it stops
 at ``rtol``, as `RESULTS.stagnation` when no damping gives a step that lowers the
@@ -58,15 +59,20 @@ def ccd_fraction(x, d, pairs, iters: int = 24):
         d0 = jnp.where(valid, d0, 1.0)
         at = lambda t: xr + t[:, None, None] * dr
 
-        def trip(_, c):
-            t, done = c
+        def trip(c):
+            i, t, done = c
             dt = (1.0 - CCD_KEEP) * jnp.sqrt(dist2(at(t))) / lp
             t1 = jnp.minimum(t + dt, 1.0)
             hit = jnp.sqrt(dist2(at(t1))) < CCD_KEEP * d0
             t_new = jnp.where(done | hit, t, t1)
-            return t_new, done | hit | (t_new >= 1.0)
+            return i + 1, t_new, done | hit | (t_new >= 1.0)
 
-        t, done = jax.lax.fori_loop(0, iters, trip, (jnp.zeros_like(d0), ~valid))
+        # a pair that cannot close (1 - CCD_KEEP) of its gap in the whole step is done at
+        # t = 1 before the first advance; the loop runs while any pair is not done
+        done0 = ~valid | ((1.0 - CCD_KEEP) * d0 >= lp)
+        t0 = jnp.where(done0, 1.0, 0.0)
+        _, t, _ = jax.lax.while_loop(lambda c: (c[0] < iters) & ~jnp.all(c[2]), trip,
+                                     (jnp.int32(0), t0, done0))
         return jnp.min(jnp.where(valid, t, 1.0), initial=1.0)
 
     t_pt = bound(pairs.pt, pairs.n_pt, 1, pair_lists.pt_distance2_of)
@@ -132,32 +138,64 @@ class _Settings:
     halvings: int = 8
     mu0: float = 1e-6
     mu_max: float = 1e3
+    watch: int = 5
+
+
+def _direction(tangent, x, F, params, args, free, mu):
+    """The step d (N, 3) mm of (K + mu diag|K|) d = F on the free dofs, or None where the
+    matrix is singular."""
+    K = tangent.matrix(x, params, args["lists"].act, args["weights"])
+    if mu > 0:
+        K = K + mu * sp.diags(np.abs(K.diagonal()) + 1e-300)
+    try:
+        dfree = spla.splu(K.tocsc(), permc_spec="MMD_AT_PLUS_A").solve(
+            np.asarray(F)[free].reshape(-1))
+    except RuntimeError:                                   # singular
+        return None
+    d = np.zeros(x.shape, np.asarray(x).dtype)
+    d[free] = dfree.reshape(-1, 3)
+    return jnp.asarray(d, x.dtype)
 
 
 def newton_finish(problem, params, x0, engine, fire: Solution, fire_steps: int = 0,
                   settings: _Settings = _Settings()) -> Solution:
     """Newton from x0 (FIRE's best state) to ``engine.rtol``, at most
     ``engine.newton_steps`` steps; ``fire``: FIRE's `Solution` (its pair lists, capacities
-    and topology).  Returns the finish's `Solution` (its steps those of both phases)."""
-    from .equilibrium import Contact, _args
+    and topology).  Returns the finish's `Solution` (its steps those of both phases).
+
+    Globalised by a watchdog (Chamberlain et al. 1982): up to ``settings.watch`` full
+    (CCD-safe) Newton steps are taken whatever their residual, and kept once one lands
+    below the reference state's residual; otherwise the finish returns to the reference
+    and backtracks there (halving the step, then raising the damping mu).  A monotone
+    line search alone stalls where the residual's curvature along a soft mode makes the
+    full step's residual large although its state is close: the next step then converges.
+    """
+    from .equilibrium import Contact, _args_jit, _barrier_start
     contact = Contact("barrier", fire.caps)
     tangent = Tangent(problem)
     free = np.asarray(problem.free)
-    base = _args(problem, params, jnp.asarray(x0), dict(lists=fire.lists, topo=fire.topo,
-                                                        weights=None))
-    from ..contact.barrier import collision_weights
     topo = fire.topo
-    base["weights"] = collision_weights(params.ref, topo.triangles, topo.tri_edge,
-                                        int(topo.n_edges))
+    weights = _barrier_start(fire.caps, params.contact.dhat, params.ref, x0, topo)[1]
+    base = _args_jit(problem, params, jnp.asarray(x0), dict(lists=fire.lists, topo=topo,
+                                                            weights=weights))
     x = jnp.asarray(x0)
     base = _valid(base, x, contact.caps, params.ref)
     F, res, ok, args = _evaluate(x, problem, params, base, contact)
     x_start, escape = jnp.asarray(fire.x), base["escape"]
     res = float(res)
-    mu, steps, result = 0.0, 0, RESULTS.max_steps_reached
+    ref = (x, F, res, args)                # the reference: the lowest residual so far
+    mu, watched, steps, result = 0.0, 0, 0, RESULTS.max_steps_reached
+
+    def trial(x, d, t, args):
+        xt = x + t * d
+        at = _valid(args, xt, contact.caps, params.ref)
+        Ft, rt, okt, at = _evaluate(xt, problem, params, at, contact)
+        return xt, Ft, float(rt), at, bool(okt) and np.isfinite(float(rt))
+
     for steps in range(engine.newton_steps + 1):
-        progress.beacon(fire_steps + steps, res, "Newton")
+        progress.beacon(fire_steps + steps, ref[2], "Newton")
         if res < engine.rtol:
+            ref = (x, F, res, args)
             result = RESULTS.successful
             break
         if not ok or not np.isfinite(res):
@@ -167,26 +205,30 @@ def newton_finish(problem, params, x0, engine, fire: Solution, fire_steps: int =
             result = (RESULTS.neighbour_overflow if steps < engine.newton_steps
                       else RESULTS.max_steps_reached)
             break
-        K = tangent.matrix(x, params, args["lists"].act, args["weights"])
-        rhs = np.asarray(F)[free].reshape(-1)
-        D = sp.diags(np.abs(K.diagonal()) + 1e-300)
+        if watched < settings.watch:
+            d = _direction(tangent, x, F, params, args, free, 0.0)
+            if d is not None:
+                t = float(_safe_fraction(x, d, args["lists"], settings.max_move))
+                xt, Ft, rt, at, okt = trial(x, d, t, args)
+                if okt:
+                    x, F, res, args = xt, Ft, rt, at
+                    watched += 1
+                    if res < (1.0 - 1e-4) * ref[2]:
+                        ref, watched = (x, F, res, args), 0
+                    continue
+        # the watchdog is spent: back to the reference, and backtrack from there
+        x, F, res, args = ref
+        watched = settings.watch          # monotone until a step is accepted
         moved = False
         while not moved and mu <= settings.mu_max:
-            try:
-                dfree = spla.splu((K + mu * D).tocsc()).solve(rhs)
-            except RuntimeError:                     # singular: damp
+            d = _direction(tangent, x, F, params, args, free, mu)
+            if d is None:
                 mu = max(10.0 * mu, settings.mu0)
                 continue
-            d = np.zeros(x.shape, np.asarray(x).dtype)
-            d[free] = dfree.reshape(-1, 3)
-            d = jnp.asarray(d, x.dtype)
             t = float(_safe_fraction(x, d, args["lists"], settings.max_move))
             for _ in range(settings.halvings):
-                xt = x + t * d
-                at = _valid(args, xt, contact.caps, params.ref)
-                Ft, rt, okt, at = _evaluate(xt, problem, params, at, contact)
-                rt = float(rt)
-                if bool(okt) and rt < (1.0 - 1e-4 * t) * res:
+                xt, Ft, rt, at, okt = trial(x, d, t, args)
+                if okt and rt < (1.0 - 1e-4 * t) * res:
                     x, F, res, args, moved = xt, Ft, rt, at, True
                     break
                 t *= 0.5
@@ -195,10 +237,13 @@ def newton_finish(problem, params, x0, engine, fire: Solution, fire_steps: int =
         if not moved:
             result = RESULTS.stagnation
             break
+        ref, watched = (x, F, res, args), 0
         mu = mu / 10.0 if mu > settings.mu0 else 0.0
         if bool(escaped(x, x_start, escape)):
             result = RESULTS.escaped
             break
+    if result != RESULTS.successful:
+        x, F, res, args = ref
     stats = Stats(steps=jnp.asarray(fire_steps + steps), force_evals=jnp.asarray(
         fire_steps + steps), hvps=jnp.asarray(0), residual=jnp.asarray(res))
     return Solution(x=x, result=jnp.asarray(int(result)), stats=stats, lists=args["lists"],
