@@ -17,7 +17,7 @@ to 1e-3 - 1e-2 and wanders.  Newton resolves that mode at once.  Each step:
 
 It runs on the host, around jitted kernels, for the members of a batch in turn; it stops
 at ``rtol``, as `RESULTS.stagnation` when no damping gives a step that lowers the
-residual, or at its step cap.
+residual or its best residual has not halved for a few steps, or at its step cap.
 """
 from __future__ import annotations
 
@@ -139,6 +139,7 @@ class _Settings:
     mu0: float = 1e-6
     mu_max: float = 1e3
     watch: int = 5
+    patience: int = 8
 
 
 def _direction(tangent, x, F, params, args, free, mu):
@@ -169,6 +170,8 @@ def newton_finish(problem, params, x0, engine, fire: Solution, fire_steps: int =
     and backtracks there (halving the step, then raising the damping mu).  A monotone
     line search alone stalls where the residual's curvature along a soft mode makes the
     full step's residual large although its state is close: the next step then converges.
+    It stops as `RESULTS.stagnation` once its best residual has not halved for
+    ``settings.patience`` steps (near a regular equilibrium Newton halves it every step).
     """
     from .equilibrium import Contact, _args_jit, _barrier_start
     contact = Contact("barrier", fire.caps)
@@ -185,6 +188,7 @@ def newton_finish(problem, params, x0, engine, fire: Solution, fire_steps: int =
     res = float(res)
     ref = (x, F, res, args)                # the reference: the lowest residual so far
     mu, watched, steps, result = 0.0, 0, 0, RESULTS.max_steps_reached
+    mark, halved_at = res, 0               # patience: the step the residual last halved
 
     def trial(x, d, t, args):
         xt = x + t * d
@@ -204,6 +208,11 @@ def newton_finish(problem, params, x0, engine, fire: Solution, fire_steps: int =
         if pair_lists.overflowed(args["lists"], contact.caps) or steps == engine.newton_steps:
             result = (RESULTS.neighbour_overflow if steps < engine.newton_steps
                       else RESULTS.max_steps_reached)
+            break
+        if ref[2] < 0.5 * mark:
+            mark, halved_at = ref[2], steps
+        elif steps - halved_at > settings.patience:
+            result = RESULTS.stagnation
             break
         if watched < settings.watch:
             d = _direction(tangent, x, F, params, args, free, 0.0)
