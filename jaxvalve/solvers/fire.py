@@ -33,7 +33,9 @@ class FIRE:
 
     Stops at a relative residual < rtol; with ``patience`` > 0 as `RESULTS.stagnation`
     once its residual, below ``patience_below`` (the leaflets have swung shut: above it
-    the residual rises and falls as they swing), has not halved for that many steps.  The state of the lowest
+    the residual rises and falls as they swing), has not halved for that many steps nor
+    for half the steps run so far (a slow solve that still halves its residual now and
+    then, as soft valves on fine meshes do, is not stopped).  The state of the lowest
     residual is kept (``state["best_y"]``, ``state["rmin"]``): where FIRE stagnates, the engine's Newton
     finish starts there (`jaxvalve.solvers.finish`)."""
 
@@ -140,7 +142,7 @@ class FIRE:
         stuck = s["refused"] & (s["dt"] < self.dt_min)
         bad = jnp.where((bad < 0) & stuck, RESULTS.stretch_limit, bad)
         stalled = ((self.patience > 0) & (s["rmin"] < self.patience_below)
-                   & (s["n"] - s["mark"] > self.patience))
+                   & (s["n"] - s["mark"] > jnp.maximum(self.patience, s["n"] // 2)))
         bad = jnp.where((bad < 0) & ~ok & stalled, RESULTS.stagnation, bad)
         return ok | (bad >= 0), jnp.where(bad >= 0, bad, RESULTS.successful)
 
