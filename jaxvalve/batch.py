@@ -24,6 +24,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+import types
 from typing import Any, Callable, Mapping
 
 import jax
@@ -238,9 +239,10 @@ class BatchResult:
 
 # ------------------------------------------------------------------------------ the solve
 def _batched_load(valve, scene, members, stacked, base, x0s, p_mmhg, caps):
-    """One load for all members: the engine's FIRE phase under vmap, then per member the
-    Newton finish where FIRE stagnated.  Returns (state-checked `ValveSolution` per
-    member, batched seconds, compile seconds of the batched call)."""
+    """One load for all members: the engine's FIRE phase under vmap (run again with grown
+    capacities where a member's pair lists overflowed), then per member the Newton finish
+    where FIRE stagnated.  Returns (state-checked `ValveSolution` per member, batched
+    seconds, compile seconds of the batched call, the capacities it ended with)."""
     solver = scene.make_solver()
     params = jax.tree_util.tree_map(
         lambda a: jnp.broadcast_to(a, (len(members),) + jnp.shape(a)),
@@ -248,11 +250,19 @@ def _batched_load(valve, scene, members, stacked, base, x0s, p_mmhg, caps):
     params = params.replace(material=stacked)
     with compile_timer() as ct:
         t0 = time.perf_counter()
-        out = fire_batch(valve.problem, params, jnp.asarray(x0s), solver,
-                         valve.contact_topology, caps)
-        jax.block_until_ready(out)
+        for _ in range(8):
+            out = fire_batch(valve.problem, params, jnp.asarray(x0s), solver,
+                             valve.contact_topology, caps)
+            jax.block_until_ready(out)
+            y, result, steps, res, best, rbest, over, c_need, a_need, raw = (
+                np.asarray(a) for a in out)
+            if not over.any():
+                break
+            # as `equilibrium.solve` does: grow the capacities past the largest need of
+            # any member, and run the batch again
+            caps = caps.grown(types.SimpleNamespace(need=c_need.max(0)),
+                              types.SimpleNamespace(need=a_need.max(0)), raw.max(0))
         wall = time.perf_counter() - t0
-    y, result, steps, res, best, rbest, over = (np.asarray(a) for a in out)
     sols = []
     for i, mat in enumerate(members):
         p_i = base.replace(pressure=mmhg(p_mmhg), material=mat)
@@ -269,7 +279,7 @@ def _batched_load(valve, scene, members, stacked, base, x0s, p_mmhg, caps):
             sol = dataclasses.replace(sol, lists=extra["lists"])
             sol = finish(valve.problem, p_i, solver, sol, jnp.asarray(best[i]), rbest[i])
         sols.append(V.checked(valve, sol, self_contact=True))
-    return sols, wall, min(ct.seconds, wall)
+    return sols, wall, min(ct.seconds, wall), caps
 
 
 def _member_say(say, i):
@@ -330,8 +340,8 @@ def simulate_batch(scene: Scene | None = None, materials=None, *, valve=None,
     stages, batched_s, compile_s = [], 0.0, 0.0
     x_from = starts
     for p in (scene.he_pressure, scene.pressure):
-        sols, wall, comp = _batched_load(valve, scene, members, stacked, base, x_from, p,
-                                         caps)
+        sols, wall, comp, caps = _batched_load(valve, scene, members, stacked, base,
+                                               x_from, p, caps)
         stages.append(sols)
         batched_s += wall
         compile_s += comp

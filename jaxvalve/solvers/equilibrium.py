@@ -343,8 +343,9 @@ def fire_batch(problem, params, x0, engine: Engine, topo, caps):
     """The engine's FIRE phase for a batch of members in one compiled program (`jax.vmap`
     over the leading axis of every leaf of ``params`` and of x0 (B, N, 3)), the pair lists
     built inside it at the capacities ``caps``: (y (B, N, 3), result (B,), steps (B,),
-    residual (B,), best state (B, N, 3), its residual (B,), overflow (B,)).  Members whose
-    lists overflowed are the caller's to solve again (`solve`)."""
+    residual (B,), best state (B, N, 3), its residual (B,), overflow (B,), and the lists'
+    needs: candidates (B, 4), active (B, 4), raw (B, 2)).  A batch whose lists overflowed
+    is the caller's to run again with grown capacities (`Capacities.grown`)."""
     blank, settings = _split(engine.fire(), x0.dtype)
     contact = Contact("barrier", caps)
     return _fire_batch(blank, contact, problem, settings, params, x0, topo)
@@ -359,8 +360,10 @@ def _fire_batch(blank, contact, problem, settings, params, x0, topo):
         args = _args(problem, p, x, dict(lists=lists, topo=topo, weights=w))
         y, a, result, steps, res, best, rbest = _run_traced(blank, contact, problem,
                                                             settings, x, args)
+        lists = a["lists"]
         return (y, result, steps, res, best, rbest,
-                pair_lists.overflow_flag(a["lists"], contact.caps))
+                pair_lists.overflow_flag(lists, contact.caps), lists.cand.need,
+                lists.act.need, lists.raw)
     return jax.vmap(one)(params, x0)
 
 
