@@ -18,8 +18,8 @@ d_hat (`jaxvalve.contact.pairs`), each with its
 own unsigned distance: IPC's constraint set as the 2020 paper sums it.  A term's distance is
 the distance to a convex set, C1 in the positions, so the energy is C1 everywhere and C2
 within each distance type; it counts a node near an edge of a sheet once for each triangle
-at that edge (the toolkit's later de-duplication drops such repeats, but switches terms on
-and off where the closest feature changes, which makes the energy jump).  The edge-edge
+at that edge (dropping the repeats would switch terms on and off where the closest feature
+changes, and make the energy jump).  The edge-edge
 terms carry a mollifier (`ipc_distance.mollifier`: IPC's, made C2 and over a wider
 angle), which removes them smoothly as the edges turn parallel (where the line-line
 distance is undefined).  They are what stops two sheets from passing through

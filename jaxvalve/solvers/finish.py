@@ -214,6 +214,7 @@ def newton_finish(problem, params, x0, engine, fire: Solution, fire_steps: int =
         elif steps - halved_at > settings.patience:
             result = RESULTS.stagnation
             break
+        tried = None                      # (direction, full step) already tried at ref
         if watched < settings.watch:
             d = _direction(tangent, x, F, params, args, free, 0.0)
             if d is not None:
@@ -225,16 +226,22 @@ def newton_finish(problem, params, x0, engine, fire: Solution, fire_steps: int =
                     if res < (1.0 - 1e-4) * ref[2]:
                         ref, watched = (x, F, res, args), 0
                     continue
+                if watched == 0 and mu == 0.0:
+                    tried = (d, t)
         # the watchdog is spent: back to the reference, and backtrack from there
         x, F, res, args = ref
         watched = settings.watch          # monotone until a step is accepted
         moved = False
         while not moved and mu <= settings.mu_max:
-            d = _direction(tangent, x, F, params, args, free, mu)
-            if d is None:
-                mu = max(10.0 * mu, settings.mu0)
-                continue
-            t = float(_safe_fraction(x, d, args["lists"], settings.max_move))
+            if tried is not None:         # the full step from here failed: halve it
+                (d, t), tried = tried, None
+                t *= 0.5
+            else:
+                d = _direction(tangent, x, F, params, args, free, mu)
+                if d is None:
+                    mu = max(10.0 * mu, settings.mu0)
+                    continue
+                t = float(_safe_fraction(x, d, args["lists"], settings.max_move))
             for _ in range(settings.halvings):
                 xt, Ft, rt, at, okt = trial(x, d, t, args)
                 if okt and rt < (1.0 - 1e-4 * t) * res:
