@@ -7,8 +7,10 @@ engine's FIRE phase under `jax.vmap`, in ONE compiled program (`jaxvalve.solvers
 equilibrium.fire_batch`): every material float is a traced input, so a second batch of the
 same size and model does not recompile, and the pair lists are built and kept inside it,
 per member.  The loop runs until every member has finished, a finished member keeping its
-state; the pair-list rebuilds and FIRE's mass refreshes run once for the batch where any
-member needs them (`jaxvalve.unvmap`).
+state; the pair-list refreshes and FIRE's mass refreshes run once for the batch where any
+member needs them (`jaxvalve.unvmap`), and every member takes the refreshed lists
+(`jaxvalve.contact.pairs.update`): a member's trajectory then depends on its companions
+within the solver's tolerance, not beyond it.
 
 Members are then finished in turn, on the host, by the one closure driver
 (`jaxvalve.valve.closure.close_valve`, with the batched solves as its first attempts):

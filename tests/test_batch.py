@@ -41,30 +41,40 @@ def runs():
                 cache=(cache, equilibrium._fire_batch._cache_size()))
 
 
-def test_batch_equals_sequential_simulate_for_every_member(runs):
-    """Each member takes the steps its own `simulate` takes and ends in the same state
-    (the batch's shared list rebuilds change no member's trajectory beyond rounding)."""
+#: how far a member's closed state (mm) and metrics (mm, %) may lie from its own
+#: `simulate`'s: the batch refreshes every member's pair lists when any member needs it, so
+#: a member's steps are capped at other times and its path differs within the solve's
+#: tolerance (rtol = 1e-4 ends both within a few 1e-4 mm of the equilibrium)
+STATE_TOL = 2e-3
+METRIC_TOL = 5e-4
+
+
+def test_every_member_closes_to_its_own_simulate_within_the_tolerance(runs):
+    """Each member converges to the state its own `simulate` converges to, within the
+    solve's tolerance, in about as many steps."""
     first, seq = runs["first"], runs["seq"]
     assert isinstance(first, BatchResult) and first.converged and len(first) == 3
     for m, s in zip(first, seq):
         assert m.parameters == {"E": s.scene.E, "nu": 0.45}
-        np.testing.assert_allclose(m.x_he, s.x_he, rtol=0, atol=1e-7)
-        np.testing.assert_allclose(m.x, s.x, rtol=0, atol=1e-7)
+        np.testing.assert_allclose(m.x_he, s.x_he, rtol=0, atol=STATE_TOL)
+        np.testing.assert_allclose(m.x, s.x, rtol=0, atol=STATE_TOL)
         for a, b in zip(m.solves, s.solves):
-            assert (a.result, a.converged, a.steps) == (b.result, b.converged, b.steps)
-            assert a.residual == pytest.approx(b.residual, rel=1e-3)
+            assert (a.result, a.converged) == (b.result, b.converged)
+            assert a.residual < SCENE.rtol and b.residual < SCENE.rtol
+            assert abs(a.steps - b.steps) <= 0.1 * b.steps
         for k in METRICS:
-            assert m.summary()[k] == pytest.approx(s.summary()[k], abs=1e-6), k
+            assert m.summary()[k] == pytest.approx(s.summary()[k], abs=METRIC_TOL), k
     # the members took different paths (so a finished member was carried along)
     assert len({m.solves[0].steps for m in first}) == 3
 
 
-def test_member_result_does_not_depend_on_its_batch(runs):
-    """E = 1 MPa with other companions: the same steps and, to rounding, the same state."""
+def test_member_result_depends_on_its_batch_only_within_the_tolerance(runs):
+    """E = 1 MPa with other companions: the same closed state within the tolerance."""
     a, b = runs["first"][0], runs["second"][0]
     assert b.parameters["E"] == 1.0 and b.converged
-    np.testing.assert_allclose(a.x, b.x, rtol=0, atol=1e-7)
-    assert [s.steps for s in a.solves] == [s.steps for s in b.solves]
+    np.testing.assert_allclose(a.x, b.x, rtol=0, atol=STATE_TOL)
+    for k in METRICS:
+        assert a.summary()[k] == pytest.approx(b.summary()[k], abs=METRIC_TOL), k
 
 
 def test_new_material_values_do_not_recompile(runs):
@@ -112,7 +122,7 @@ def test_timings_and_rows(runs):
 def test_a_batch_whose_lists_overflow_grows_them_and_runs_again(runs, monkeypatch):
     """Pair-list capacities far below what the closed valve needs: the member's lists
     overflow inside the batched program, the batch grows the capacities and runs again,
-    and the member closes in the batch; the result is the one of the batch with room."""
+    and the member closes in the batch, to the state of the batch with room."""
     tiny = pair_lists.Capacities(pt=256, ee=1024, raw_pt=1024, raw_ee=4096, scan_pt=512,
                                  scan_ee=2048, act_pt=128, act_ee=256, table=16384)
     monkeypatch.setattr(pair_lists.Capacities, "for_mesh", classmethod(lambda cls, *a: tiny))
@@ -120,8 +130,8 @@ def test_a_batch_whose_lists_overflow_grows_them_and_runs_again(runs, monkeypatc
     res = simulate_batch(SCENE, stvk(E_FIRST[0]), valve=runs["first"].valve,
                          progress=said.append)
     ref = runs["first"][0]
-    assert res.converged and res[0].solves[1].steps == ref.solves[1].steps
-    np.testing.assert_allclose(res[0].x, ref.x, rtol=0, atol=1e-7)
+    assert res.converged
+    np.testing.assert_allclose(res[0].x, ref.x, rtol=0, atol=STATE_TOL)
     assert any("1/1 converged in the batch" in m for m in said), said
 
 

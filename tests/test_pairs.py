@@ -178,3 +178,30 @@ def test_chunked_forces_equal_autodiff_and_obey_newtons_third_law():
     np.testing.assert_allclose(torque, 0.0, atol=1e-10 * scale)
     # dmin: each listed node's smallest pair distance, never below the true one
     assert float(jnp.min(dmin)) > 0 and np.isfinite(float(jnp.min(dmin)))
+
+
+def test_under_vmap_every_member_takes_a_refresh_that_one_member_needs():
+    """A batch refreshes its pair lists when any member needs it, and every member takes
+    the refreshed lists (built at its own state); alone, a member that has moved less
+    than the skin allows keeps its lists."""
+    x, tri, body, ref = _bodies()
+    topo = pair_lists.contact_topology(tri, body, np.zeros(len(x), bool), x, self_gap=0.4)
+    dhat, skin, margin = 0.3, 0.4, 0.1              # rebuilt after 0.15 mm, re-selected after 0.05
+    _, caps = pair_lists.allocate(topo, jnp.asarray(ref), jnp.asarray(x), dhat + skin, 0.0, 0.0)
+    X = jnp.asarray(x)
+    start = jax.vmap(lambda y: pair_lists.start(topo, jnp.asarray(ref), y, caps, dhat, skin,
+                                                margin))
+    lists = start(jnp.stack([X, X]))
+    still = X.at[:, 2].add(0.01)                    # member 0: moved 0.01 mm, needs nothing
+    moved = X.at[3, 2].add(0.2)                     # member 1: one node moved 0.2 mm
+    update = lambda l, y: pair_lists.update(l, topo, jnp.asarray(ref), y, caps)
+    new = jax.vmap(update)(lists, jnp.stack([still, moved]))
+    np.testing.assert_array_equal(np.asarray(new.cand.x_build), np.stack([still, moved]))
+    np.testing.assert_array_equal(np.asarray(new.act.x_build), np.stack([still, moved]))
+    fresh = pair_lists.start(topo, jnp.asarray(ref), still, caps, dhat, skin, margin)
+    member0 = jax.tree_util.tree_map(lambda a: a[0], new)
+    assert _listed(member0.cand)[:2] == _listed(fresh.cand)[:2]
+    assert _listed(member0.act)[:2] == _listed(fresh.act)[:2]
+    alone = update(jax.tree_util.tree_map(lambda a: a[0], lists), still)
+    np.testing.assert_array_equal(np.asarray(alone.cand.x_build), x)
+    np.testing.assert_array_equal(np.asarray(alone.act.x_build), x)

@@ -371,24 +371,23 @@ def update(lists: Lists, topo, ref, x, caps: Capacities) -> Lists:
     """``lists`` valid at x (usable inside jit): the active pairs re-selected from the
     candidates once a node has moved margin / 2 since their selection, the candidates
     rebuilt first once a node has moved (skin - margin) / 2 since their build.  Under
-    vmap the branches run when any member needs them, each member keeping its own lists
-    where it does not (`jaxvalve.unvmap`)."""
-    need_cand = _moved(lists.cand, x) >= 0.5 * (lists.skin - lists.margin)
-    need_act = need_cand | (_moved(lists.act, x) >= 0.5 * lists.margin)
-    keep = lambda need, new, old: jax.tree_util.tree_map(
-        lambda a, b: jnp.where(need, a, b), new, old)
+    vmap a refresh runs for the whole batch when any member needs it (`jaxvalve.unvmap`),
+    and every member takes the refreshed lists: lists built at the current state are
+    valid for each, and a member that kept its old ones would ask for its own refresh a
+    few steps later, so that a batch would refresh about once per member's need."""
+    rebuilt = unvmap_any(_moved(lists.cand, x) >= 0.5 * (lists.skin - lists.margin))
 
     def rebuild(l):
         cand, raw = build(topo, ref, x, l.dhat + l.skin, caps)
-        return dataclasses.replace(l, cand=keep(need_cand, _sticky(cand, l.cand), l.cand),
-                                   raw=jnp.where(need_cand, jnp.maximum(raw, l.raw), l.raw))
+        return dataclasses.replace(l, cand=_sticky(cand, l.cand), raw=jnp.maximum(raw, l.raw))
 
     def reselect(l):
         act = prune(l.cand, x, l.dhat + l.margin, caps.act_pt, caps.act_ee)
-        return dataclasses.replace(l, act=keep(need_act, _sticky(act, l.act), l.act))
+        return dataclasses.replace(l, act=_sticky(act, l.act))
 
-    lists = jax.lax.cond(unvmap_any(need_cand), rebuild, lambda l: l, lists)
-    return jax.lax.cond(unvmap_any(need_act), reselect, lambda l: l, lists)
+    lists = jax.lax.cond(rebuilt, rebuild, lambda l: l, lists)
+    reselected = unvmap_any(rebuilt | (_moved(lists.act, x) >= 0.5 * lists.margin))
+    return jax.lax.cond(reselected, reselect, lambda l: l, lists)
 
 
 def start(topo, ref, x, caps: Capacities, dhat, skin, margin) -> Lists:
