@@ -34,7 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .contact import pairs as pair_lists
-from .solvers.equilibrium import contact_args, finish, fire_batch
+from .solvers.equilibrium import MARGIN, SKIN, contact_args, finish, fire_batch
 from .errors import ConvergenceError, ParameterError
 from .mechanics.materials import Material
 from .mechanics.problem import mmhg, validate_params
@@ -334,11 +334,11 @@ def simulate_batch(scene: Scene | None = None, materials=None, *, valve=None,
     B = len(members)
     say(f"closing {B} member{'s' * (B != 1)} ({model}) at {scene.he_pressure:g} then "
         f"{scene.pressure:g} mmHg in one batch (engine)")
-    # capacities for the closed valve: grown at the placement, with room for coaptation
-    _, extra = contact_args(valve.problem, base.replace(material=members[0]), x0,
-                            valve.contact_topology)
-    caps = pair_lists.Capacities.for_mesh(x0.shape[0], int(valve.contact_topology.n_edges),
-                                          valve.triangles.shape[0])
+    # the contact's settings checked against the valve before any expensive work, and
+    # capacities for the closed valve (`Capacities.for_mesh`)
+    contact_args(valve.problem, base.replace(material=members[0]), x0, valve.contact_topology)
+    caps = pair_lists.Capacities.for_mesh(valve.contact_topology, base.contact.dhat, SKIN,
+                                          MARGIN)
     stages, batched_s, compile_s = [], 0.0, 0.0
     x_from = starts
     for p in (scene.he_pressure, scene.pressure):

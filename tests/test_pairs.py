@@ -1,6 +1,7 @@
 """The barrier's pair lists inside jit (`jaxvalve.contact.pairs`) against a brute force on
 the host, their overflow flag and growth, and the chunked barrier forces
 (`jaxvalve.contact.barrier.forces`) against autodiff of the pair energies."""
+import dataclasses
 import itertools
 
 import jax
@@ -205,3 +206,29 @@ def test_under_vmap_every_member_takes_a_refresh_that_one_member_needs():
     alone = update(jax.tree_util.tree_map(lambda a: a[0], lists), still)
     np.testing.assert_array_equal(np.asarray(alone.cand.x_build), x)
     np.testing.assert_array_equal(np.asarray(alone.act.x_build), x)
+
+
+@pytest.mark.parametrize("cell", [0.6, 1.5])
+def test_capacities_for_a_mesh_hold_two_coapted_sheets(cell):
+    """Two sheets pressed 0.05 mm apart over their whole area, as coapted leaflets are:
+    the capacities `Capacities.for_mesh` sizes from the mesh's edge length and the lists'
+    cutoffs hold every pair (no overflow) at a fine and a coarse mesh, and grow per node
+    as the edges shorten."""
+    n = int(round(9.0 / cell))
+    rng = np.random.default_rng(1)
+    a = grid_sheet(n, 9.0, jitter=0.1, rng=rng)
+    b = grid_sheet(n, 9.0, z=0.05, origin=(0.3 * cell, 0.4 * cell), jitter=0.1, rng=rng,
+                   flip=True)
+    x, tri, body = combine(a, b)
+    ref = x.copy()
+    ref[body == 1, 0] += 20.0
+    topo = pair_lists.contact_topology(tri, body, np.zeros(len(x), bool), x)
+    assert topo.edge_len == pytest.approx(cell * (2 + np.sqrt(2)) / 3, rel=0.1)
+    caps = pair_lists.Capacities.for_mesh(topo, 0.2, 1.0, 0.2)
+    lists = pair_lists.start(topo, jnp.asarray(ref), jnp.asarray(x), caps, 0.2, 1.0, 0.2)
+    assert int(lists.act.n_pt) > len(x) // 2           # the sheets are in contact
+    assert not pair_lists.overflowed(lists, caps)
+    per_node = caps.pt / len(x)
+    coarse = pair_lists.Capacities.for_mesh(
+        dataclasses.replace(topo, edge_len=2 * topo.edge_len), 0.2, 1.0, 0.2)
+    assert coarse.pt / len(x) < 0.7 * per_node

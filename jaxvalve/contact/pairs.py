@@ -58,7 +58,9 @@ class ContactTopology:
     ``edge_*``): the leaflet id, the commissure pin the element is sewn to (-1: none; an
     element touches at most one) and whether all its nodes are sutured.  self_gap (mm,
     static): elements of one leaflet whose template balls come closer than this are
-    neighbours within the sheet, never contact."""
+    neighbours within the sheet, never contact.  edge_len (mm, static): the edges' mean
+    length at the state the topology was built from, the scale of the pair lists'
+    capacities (`Capacities.for_mesh`)."""
 
     triangles: Any
     edges: Any
@@ -72,6 +74,7 @@ class ContactTopology:
     edge_body: Any
     edge_pin: Any
     edge_fixed: Any
+    edge_len: float = dataclasses.field(metadata=dict(static=True))
     self_gap: float = dataclasses.field(default=SELF_GAP, metadata=dict(static=True))
 
     @property
@@ -122,7 +125,9 @@ def contact_topology(triangles, body, fixed, x0, pin_tol: float = 1e-9,
                            node_body=i32(body), node_pin=i32(pin),
                            node_fixed=jnp.asarray(fixed), tri_body=i32(tb), tri_pin=i32(tp),
                            tri_fixed=jnp.asarray(tf), edge_body=i32(eb), edge_pin=i32(ep),
-                           edge_fixed=jnp.asarray(ef), self_gap=float(self_gap))
+                           edge_fixed=jnp.asarray(ef), self_gap=float(self_gap),
+                           edge_len=float(np.mean(np.linalg.norm(x0[edges[:, 0]] - x0[edges[:, 1]],
+                                                                 axis=1))) if len(edges) else 1.0)
 
 
 @jax.tree_util.register_dataclass
@@ -170,15 +175,23 @@ class Capacities:
     table: int
 
     @classmethod
-    def for_mesh(cls, n_nodes: int, n_edges: int, n_triangles: int) -> "Capacities":
-        """Sizes for a closing valve of this mesh (pairs grow as the leaflets coapt; an
-        overflow later grows them, `grown`)."""
+    def for_mesh(cls, topo: ContactTopology, dhat, skin, margin) -> "Capacities":
+        """Sizes for a closing valve of the mesh ``topo`` and the lists' cutoffs (mm): where
+        two sheets with edges of mean length l coapt, a node meets about (c / l + 1)^2
+        elements of the other within a cutoff c (dhat + skin for the candidates, dhat +
+        margin for the active pairs).  The factors per node (per edge for the edge-edge
+        scan) hold two sheets pressed together over their whole area (tested) and the
+        benchmark valve closed, with a quarter as much again to spare; an overflow later
+        grows them (`grown`)."""
+        n, n_edges = topo.node_body.shape[0], int(topo.n_edges)
+        cand = (float(dhat + skin) / topo.edge_len + 1.0) ** 2 * n
+        act = (float(dhat + margin) / topo.edge_len + 1.0) ** 2 * n
         r = lambda v, k=512: int(-(-int(v) // k) * k)
-        return cls(pt=r(12 * n_nodes), ee=r(24 * n_nodes), raw_pt=r(24 * n_nodes),
-                   raw_ee=r(64 * n_nodes), scan_pt=r(6 * n_nodes + 64, 256),
-                   scan_ee=r(8 * n_edges + 64, 256), act_pt=r(4 * n_nodes),
-                   act_ee=r(10 * n_nodes),
-                   table=int(2 ** np.ceil(np.log2(max(16384, 16 * n_triangles)))))
+        return cls(pt=r(5.3 * cand), ee=r(13.0 * cand), raw_pt=r(6.3 * cand),
+                   raw_ee=r(17.5 * cand), scan_pt=r(1.3 * cand + 64, 256),
+                   scan_ee=r(2.0 * cand / n * n_edges + 64, 256), act_pt=r(3.7 * act),
+                   act_ee=r(10.0 * act),
+                   table=int(2 ** np.ceil(np.log2(max(16384, 16 * topo.triangles.shape[0])))))
 
     def grown(self, cand: PairList, act: PairList, raw: Any) -> "Capacities":
         """These sizes grown past what the lists ``cand``, ``act`` and the broad phase's
@@ -445,8 +458,7 @@ def allocate(topo, ref, x, dhat, skin, margin, caps: Capacities | None = None,
     x = jnp.asarray(x)
     if not bool(jnp.all(jnp.isfinite(x))):
         raise ParameterError("x holds non-finite positions; contact needs finite coordinates")
-    caps = caps or Capacities.for_mesh(x.shape[0], int(topo.n_edges),
-                                       int(topo.triangles.shape[0]))
+    caps = caps or Capacities.for_mesh(topo, dhat, skin, margin)
     for _ in range(tries):
         lists = _start_jit(topo, jnp.asarray(ref), x, caps, dhat, skin, margin)
         if not overflowed(lists, caps):

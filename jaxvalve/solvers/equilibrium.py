@@ -314,13 +314,11 @@ def contact_args(problem, params, x0, topo=None, caps=None, dhat=None):
         if float(law.dhat) > topo.self_gap:
             raise ParameterError(f"the barrier's dhat = {float(law.dhat):g} mm must not exceed "
                                  f"the self-contact gap self_gap = {topo.self_gap:g} mm")
-        caps = caps or pair_lists.Capacities.for_mesh(problem.n_nodes, int(topo.n_edges),
-                                                      int(topo.triangles.shape[0]))
+        caps = caps or pair_lists.Capacities.for_mesh(topo, law.dhat, SKIN, MARGIN)
         lists, weights = _barrier_start(caps, law.dhat, params.ref, x0, topo)
         return Contact("barrier", caps), dict(lists=lists, topo=topo, weights=weights)
     reach = float(1.25 * vicinity_threshold(jnp.asarray(x0), problem.triangles))
-    caps = caps or pair_lists.Capacities.for_mesh(problem.n_nodes, int(topo.n_edges),
-                                                  int(topo.triangles.shape[0]))
+    caps = caps or pair_lists.Capacities.for_mesh(topo, reach, SKIN, 0.5)
     lists = pair_lists.stale(x0, caps, reach, SKIN, 0.5)
     return Contact("paper", caps), dict(lists=lists, topo=topo)
 
