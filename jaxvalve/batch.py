@@ -26,7 +26,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-import types
 from typing import Any, Callable, Mapping
 
 import jax
@@ -262,8 +261,7 @@ def _batched_load(valve, scene, members, stacked, base, x0s, p_mmhg, caps):
                 break
             # as `equilibrium.solve` does: grow the capacities past the largest need of
             # any member, and run the batch again
-            caps = caps.grown(types.SimpleNamespace(need=c_need.max(0)),
-                              types.SimpleNamespace(need=a_need.max(0)), raw.max(0))
+            caps = caps.grown(c_need.max(0), a_need.max(0), raw.max(0))
         wall = time.perf_counter() - t0
     sols = []
     for i, mat in enumerate(members):

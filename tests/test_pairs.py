@@ -12,6 +12,7 @@ import pytest
 from jaxvalve.contact import pairs as pair_lists
 from jaxvalve.contact.barrier import BarrierContact, collision_weights, forces
 from jaxvalve.contact.geometry import point_triangle_distance_np
+from jaxvalve.errors import ParameterError
 from jaxvalve.geometry.mesh import unique_edges
 from sheets import combine, grid_sheet
 
@@ -232,3 +233,12 @@ def test_capacities_for_a_mesh_hold_two_coapted_sheets(cell):
     coarse = pair_lists.Capacities.for_mesh(
         dataclasses.replace(topo, edge_len=2 * topo.edge_len), 0.2, 1.0, 0.2)
     assert coarse.pt / len(x) < 0.7 * per_node
+
+
+def test_a_topology_of_coincident_nodes_is_refused_naming_x0():
+    """Edges of zero mean length give the pair lists no scale: a clear error, before any
+    list is built."""
+    p, t = grid_sheet(3, 1.0)
+    with pytest.raises(ParameterError, match="x0 gives the mesh's edges a mean length"):
+        pair_lists.contact_topology(t, np.zeros(len(p), np.int64), np.zeros(len(p), bool),
+                                    np.zeros_like(p))

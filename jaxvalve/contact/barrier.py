@@ -8,22 +8,21 @@ with d_k the unsigned distance of collision k (`ipc_distance`), w_k its area wei
 m_k the edge-edge mollifier (1 for point-triangle collisions) and B = 0 for d_k >= d_hat.
 B, B' and B'' vanish at z = 1, so the energy is C2 in the positions where a
 pair enters the range d_hat (within one distance type), and B grows to +inf as d -> 0: a
-state of finite energy has no contact and no crossing.  This is the IPC toolkit's "physical" barrier
-(``BarrierPotential(dhat, kappa, use_physical_barrier=True)``), so the tests can compare
-with it term by term.
+state of finite energy has no contact and no crossing.  This is the IPC toolkit's
+"physical" barrier (``BarrierPotential(dhat, kappa, use_physical_barrier=True)``), so the
+tests can compare with it term by term.
 
 Collisions.  Every node against every triangle of another leaflet, and every edge against
 every edge of another leaflet (and of one leaflet beyond its self-contact gap), within
-d_hat (`jaxvalve.contact.pairs`), each with its
-own unsigned distance: IPC's constraint set as the 2020 paper sums it.  A term's distance is
-the distance to a convex set, C1 in the positions, so the energy is C1 everywhere and C2
-within each distance type; it counts a node near an edge of a sheet once for each triangle
-at that edge (dropping the repeats would switch terms on and off where the closest feature
-changes, and make the energy jump).  The edge-edge
-terms carry a mollifier (`ipc_distance.mollifier`: IPC's, made C2 and over a wider
-angle), which removes them smoothly as the edges turn parallel (where the line-line
-distance is undefined).  They are what stops two sheets from passing through
-each other edge first, between nodes.
+d_hat (`jaxvalve.contact.pairs`), each with its own unsigned distance: IPC's constraint set
+as the 2020 paper sums it.  A term's distance is the distance to a convex set, C1 in the
+positions, so the energy is C1 everywhere and C2 within each distance type.  A node near
+an edge of a sheet is counted once for each triangle at that edge: dropping the repeats
+would switch terms on and off where the closest feature changes, and make the energy jump.
+The edge-edge terms carry a mollifier (`ipc_distance.mollifier`: IPC's, made C2 and over a
+wider angle), which removes them smoothly as the edges turn parallel (where the line-line
+distance is undefined).  They stop two sheets from passing through each other edge first,
+between nodes.
 
 Weights.  A point-triangle collision of node p weighs a_p / 2 (a_p its lumped reference
 area): both leaflets' nodes see the other's faces, so two parallel sheets at distance d

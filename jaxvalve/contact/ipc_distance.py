@@ -190,13 +190,9 @@ def line_line_distance2(ea0, ea1, eb0, eb1):
 
 
 #: The parallel-edge threshold's coefficient: eps_x = MOLLIFIER_C |ea|^2 |eb|^2, i.e. edges
-#: closer to parallel than sin^2(angle) = MOLLIFIER_C are mollified.  IPC's 1e-3 (1.8
-#: degrees) is ten times smaller: coapted free edges lie nearly parallel, and at that
-#: scale a step of 0.01-0.02 mm turns a 1.5 mm edge across the whole mollified range, so
-#: Newton on the soft Table 4 cell E1 = 0.05, E2 = 0.7 MPa at 55.3 mmHg stalled at a
-#: relative residual of 1e-4, the error of its linear model all on the four nodes of one
-#: such pair; with 1e-2 it converges quadratically to 1e-14 in 6 steps
-#: (docs/barrier-contact.md, "The mollifier").
+#: closer to parallel than sin^2(angle) = MOLLIFIER_C are mollified: ten times IPC's, so
+#: that the nearly parallel free edges of coapted leaflets do not cross the whole mollified
+#: range in one small step (docs/barrier-contact.md, "Mollifier").
 MOLLIFIER_C = 1e-2
 
 

@@ -118,6 +118,11 @@ def contact_topology(triangles, body, fixed, x0, pin_tol: float = 1e-9,
             raise ParameterError("an element touches two commissure pins; refine the mesh")
         return body[rows[:, 0]], top, np.all(fixed[rows], axis=1)
 
+    edge_len = (float(np.mean(np.linalg.norm(x0[edges[:, 0]] - x0[edges[:, 1]], axis=1)))
+                if len(edges) else 1.0)
+    if not (np.isfinite(edge_len) and edge_len > 0):
+        raise ParameterError(f"x0 gives the mesh's edges a mean length of {edge_len!r} mm; it "
+                             "must be finite and > 0 (distinct, finite node positions)")
     i32 = lambda a: jnp.asarray(np.asarray(a, np.int32))
     tb, tp, tf = element(tri)
     eb, ep, ef = element(edges)
@@ -126,8 +131,7 @@ def contact_topology(triangles, body, fixed, x0, pin_tol: float = 1e-9,
                            node_fixed=jnp.asarray(fixed), tri_body=i32(tb), tri_pin=i32(tp),
                            tri_fixed=jnp.asarray(tf), edge_body=i32(eb), edge_pin=i32(ep),
                            edge_fixed=jnp.asarray(ef), self_gap=float(self_gap),
-                           edge_len=float(np.mean(np.linalg.norm(x0[edges[:, 0]] - x0[edges[:, 1]],
-                                                                 axis=1))) if len(edges) else 1.0)
+                           edge_len=edge_len)
 
 
 @jax.tree_util.register_dataclass
@@ -193,22 +197,23 @@ class Capacities:
                    act_ee=r(10.0 * act),
                    table=int(2 ** np.ceil(np.log2(max(16384, 16 * topo.triangles.shape[0])))))
 
-    def grown(self, cand: PairList, act: PairList, raw: Any) -> "Capacities":
-        """These sizes grown past what the lists ``cand``, ``act`` and the broad phase's
-        raw counts ``raw`` (2,) needed: every size more than half used is grown to at least
-        twice its need (a solve that overflowed starts again, and the pairs grow as the
-        leaflets close)."""
+    def grown(self, cand_need, act_need, raw) -> "Capacities":
+        """These sizes grown past the needs of the candidates ``cand_need`` (4,), the active
+        pairs ``act_need`` (4,) (`PairList.need`) and the broad phase's raw counts ``raw``
+        (2,): every size more than half used is grown to at least twice its need (a solve
+        that overflowed starts again, and the pairs grow as the leaflets close)."""
         up = lambda have, need: have if 2 * need <= have else int(2 ** np.ceil(np.log2(
             max(2 * have, 2 * need))))
-        c, a, raw = np.asarray(cand.need), np.asarray(act.need), np.asarray(raw)
+        c, a, raw = np.asarray(cand_need), np.asarray(act_need), np.asarray(raw)
         return dataclasses.replace(
             self, pt=up(self.pt, c[0]), ee=up(self.ee, c[1]), raw_pt=up(self.raw_pt, raw[0]),
             raw_ee=up(self.raw_ee, raw[1]), scan_pt=up(self.scan_pt, c[2]),
             scan_ee=up(self.scan_ee, c[3]), act_pt=up(self.act_pt, a[0]),
             act_ee=up(self.act_ee, a[1]))
 
-    def fits(self, cand: PairList, act: PairList, raw: Any) -> bool:
-        c, a, raw = np.asarray(cand.need), np.asarray(act.need), np.asarray(raw)
+    def fits(self, cand_need, act_need, raw) -> bool:
+        """Whether these sizes hold the needs (as `grown`)."""
+        c, a, raw = np.asarray(cand_need), np.asarray(act_need), np.asarray(raw)
         return bool(c[0] <= self.pt and c[1] <= self.ee and c[2] <= self.scan_pt
                     and c[3] <= self.scan_ee and a[0] <= self.act_pt
                     and a[1] <= self.act_ee and raw[0] <= self.raw_pt
@@ -439,7 +444,7 @@ def overflow_flag(lists: Lists, caps: Capacities):
 
 def overflowed(lists: Lists, caps: Capacities) -> bool:
     """Host side: whether any build or prune of ``lists`` dropped pairs."""
-    return not caps.fits(lists.cand, lists.act, lists.raw)
+    return not caps.fits(lists.cand.need, lists.act.need, lists.raw)
 
 
 def check_overflow(lists: Lists, caps: Capacities) -> None:
@@ -463,7 +468,7 @@ def allocate(topo, ref, x, dhat, skin, margin, caps: Capacities | None = None,
         lists = _start_jit(topo, jnp.asarray(ref), x, caps, dhat, skin, margin)
         if not overflowed(lists, caps):
             return lists, caps
-        caps = caps.grown(lists.cand, lists.act, lists.raw)
+        caps = caps.grown(lists.cand.need, lists.act.need, lists.raw)
     check_overflow(lists, caps)
 
 

@@ -407,7 +407,8 @@ def solve(problem: Problem, params: Params, x0, solver=None, *, throw: bool = Tr
         if traced or contact.kind is None or not pair_lists.overflowed(args["lists"],
                                                                        contact.caps):
             break
-        caps = contact.caps.grown(args["lists"].cand, args["lists"].act, args["lists"].raw)
+        lists = args["lists"]
+        caps = contact.caps.grown(lists.cand.need, lists.act.need, lists.raw)
         topo = args["topo"]
     stats = Stats(steps=steps, force_evals=steps, hvps=jnp.asarray(0), residual=res)
     sol = Solution(x=y, result=result, stats=stats, lists=args.get("lists"),
